@@ -1,0 +1,25 @@
+"""Exception hierarchy of pdvc.
+
+Every error raised on purpose by pdvc derives from :class:`PdvcError`, and
+also from the built-in class a Python user would expect (``ValueError``,
+``TypeError``, ...), so ``except ValueError`` keeps working.  Messages name
+the parameter, what was expected and what came.
+"""
+
+from __future__ import annotations
+
+
+class PdvcError(Exception):
+    """Base class of all pdvc errors."""
+
+
+class GeometryError(PdvcError, ValueError):
+    """An inconsistent or degenerate geometry (vectors, detector, volume)."""
+
+
+class ShapeError(PdvcError, ValueError):
+    """Arrays whose shapes do not agree with each other or with a geometry."""
+
+
+class BackendError(PdvcError, ValueError):
+    """An unknown or unavailable projector backend."""

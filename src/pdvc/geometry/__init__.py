@@ -1,0 +1,17 @@
+"""Vector geometry, nominal builders and rigid poses (``DESIGN.md`` §1)."""
+
+from ._nominal import circular_cone, parallel
+from ._poses import compose_poses, invert_poses, matrix_to_rotvec, rotvec_to_matrix
+from ._vector import VectorGeometry
+from ._volume import VolumeGeometry
+
+__all__ = [
+    "VectorGeometry",
+    "VolumeGeometry",
+    "circular_cone",
+    "parallel",
+    "rotvec_to_matrix",
+    "matrix_to_rotvec",
+    "compose_poses",
+    "invert_poses",
+]

@@ -1,0 +1,47 @@
+"""Rigid poses: rotation vectors, exact composition on SO(3)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..errors import GeometryError
+
+__all__ = ["rotvec_to_matrix", "matrix_to_rotvec", "compose_poses", "invert_poses"]
+
+
+def rotvec_to_matrix(rotvecs) -> np.ndarray:
+    """Rotation matrices from rotation vectors (axis x angle, radians).
+
+    ``(3,)`` gives ``(3, 3)``; ``(n, 3)`` gives ``(n, 3, 3)``.
+    """
+    rv = np.array(rotvecs, dtype=np.float64)  # writable copy (scipy needs one)
+    if rv.shape[-1:] != (3,) or rv.ndim > 2:
+        raise GeometryError(f"rotation vectors must have shape (3,) or (n, 3), got {rv.shape}")
+    return Rotation.from_rotvec(rv).as_matrix()
+
+
+def matrix_to_rotvec(matrices) -> np.ndarray:
+    """Rotation vectors from rotation matrices ``(3, 3)`` or ``(n, 3, 3)``."""
+    m = np.array(matrices, dtype=np.float64)
+    if m.shape[-2:] != (3, 3) or m.ndim > 3:
+        raise GeometryError(f"rotation matrices must have shape (3, 3) or (n, 3, 3), got {m.shape}")
+    return Rotation.from_matrix(m).as_rotvec()
+
+
+def compose_poses(rv_a, t_a, rv_b, t_b) -> tuple[np.ndarray, np.ndarray]:
+    """Pose ``a ∘ b``: first ``x -> R_b x + t_b``, then ``x -> R_a x + t_a``.
+
+    Exact on SO(3). Arrays broadcast over a leading view axis.
+    """
+    Ra, Rb = Rotation.from_rotvec(np.array(rv_a, np.float64)), Rotation.from_rotvec(np.array(rv_b, np.float64))
+    rv = (Ra * Rb).as_rotvec()
+    t = Ra.apply(np.asarray(t_b, np.float64)) + np.asarray(t_a, np.float64)
+    return rv, t
+
+
+def invert_poses(rv, t) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse pose: ``x -> Rᵀ x - Rᵀ t``."""
+    R = Rotation.from_rotvec(np.array(rv, np.float64))
+    Rinv = R.inv()
+    return Rinv.as_rotvec(), -Rinv.apply(np.asarray(t, np.float64))
