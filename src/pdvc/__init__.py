@@ -1,7 +1,8 @@
 """pdvc: self-calibration of lab micro-CT scans by projection-based DVC."""
 
-from .errors import BackendError, GeometryError, PdvcError, ShapeError
+from .errors import BackendError, GeometryError, InputTypeError, PdvcError, ShapeError
 from .geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
+from .projectors import backproject, forward, jacobian, reduce_views
 
 __version__ = "0.1.0"
 
@@ -10,8 +11,13 @@ __all__ = [
     "GeometryError",
     "ShapeError",
     "BackendError",
+    "InputTypeError",
     "VectorGeometry",
     "VolumeGeometry",
     "circular_cone",
     "parallel",
+    "forward",
+    "backproject",
+    "jacobian",
+    "reduce_views",
 ]

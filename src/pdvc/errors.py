@@ -23,3 +23,7 @@ class ShapeError(PdvcError, ValueError):
 
 class BackendError(PdvcError, ValueError):
     """An unknown or unavailable projector backend."""
+
+
+class InputTypeError(PdvcError, TypeError):
+    """An argument of the wrong type (e.g. a plain array where a geometry is expected)."""
