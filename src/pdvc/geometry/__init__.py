@@ -1,5 +1,6 @@
 """Vector geometry, nominal builders and rigid poses (``DESIGN.md`` §1)."""
 
+from ._compare import ReprojectionError, reprojection_error, sample_points
 from ._nominal import circular_cone, parallel
 from ._poses import compose_poses, invert_poses, matrix_to_rotvec, rotvec_to_matrix
 from ._vector import VectorGeometry
@@ -14,4 +15,7 @@ __all__ = [
     "matrix_to_rotvec",
     "compose_poses",
     "invert_poses",
+    "reprojection_error",
+    "ReprojectionError",
+    "sample_points",
 ]
