@@ -185,3 +185,12 @@ def test_volume_geometry_centres_and_errors():
                        (dict(shape=(4, 4, 4), offset=(1, 2)), "offset")]:
         with pytest.raises(pdvc.GeometryError, match=match):
             pdvc.VolumeGeometry(**bad)
+
+
+def test_pose_helpers_accept_read_only_arrays():
+    rv = np.array([[0.1, 0.2, 0.3]])
+    t = np.array([[1.0, 2.0, 3.0]])
+    rv.setflags(write=False)
+    t.setflags(write=False)
+    compose_poses(rv, t, rv, t)
+    invert_poses(rv, t)

@@ -36,7 +36,7 @@ def compose_poses(rv_a, t_a, rv_b, t_b) -> tuple[np.ndarray, np.ndarray]:
     """
     Ra, Rb = Rotation.from_rotvec(np.array(rv_a, np.float64)), Rotation.from_rotvec(np.array(rv_b, np.float64))
     rv = (Ra * Rb).as_rotvec()
-    t = Ra.apply(np.asarray(t_b, np.float64)) + np.asarray(t_a, np.float64)
+    t = Ra.apply(np.array(t_b, np.float64)) + np.asarray(t_a, np.float64)
     return rv, t
 
 
@@ -44,4 +44,4 @@ def invert_poses(rv, t) -> tuple[np.ndarray, np.ndarray]:
     """Inverse pose: ``x -> Rᵀ x - Rᵀ t``."""
     R = Rotation.from_rotvec(np.array(rv, np.float64))
     Rinv = R.inv()
-    return Rinv.as_rotvec(), -Rinv.apply(np.asarray(t, np.float64))
+    return Rinv.as_rotvec(), -Rinv.apply(np.array(t, np.float64))
