@@ -3,6 +3,7 @@
 from .errors import BackendError, GeometryError, InputTypeError, PdvcError, ShapeError
 from .geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
 from .projectors import backproject, forward, jacobian, reduce_views
+from .recon import fbp, fdk
 
 __version__ = "0.1.0"
 
@@ -20,4 +21,6 @@ __all__ = [
     "backproject",
     "jacobian",
     "reduce_views",
+    "fdk",
+    "fbp",
 ]
