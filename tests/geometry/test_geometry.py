@@ -194,3 +194,21 @@ def test_pose_helpers_accept_read_only_arrays():
     t.setflags(write=False)
     compose_poses(rv, t, rv, t)
     invert_poses(rv, t)
+
+
+def test_remove_mean_pose_is_a_gauge(rng):
+    """Re-gauged poses describe the same scan up to one rigid motion, and average to the identity."""
+    from pdvc.geometry import remove_mean_pose, reprojection_error
+
+    g = pdvc.circular_cone(np.linspace(0, 2 * np.pi, 10, endpoint=False), sod=200, odd=100, det_shape=(40, 40), pixel=1.0)
+    rv = rng.normal(0, 0.05, (10, 3)) + [0.1, -0.2, 0.3]
+    t = rng.normal(0, 1.0, (10, 3)) + [3.0, -2.0, 5.0]
+    c = np.array([1.0, 2.0, -1.0])
+    rv2, t2 = remove_mean_pose(rv, t, center=c)
+    from scipy.spatial.transform import Rotation
+
+    np.testing.assert_allclose(Rotation.from_rotvec(rv2).mean().as_rotvec(), 0, atol=1e-12)
+    moved_c = Rotation.from_rotvec(rv2).apply(c) + t2
+    np.testing.assert_allclose(moved_c.mean(axis=0), c, atol=1e-9)
+    pts = rng.normal(0, 8, (20, 3))
+    assert reprojection_error(g.apply_poses(rv2, t2), g.apply_poses(rv, t), pts).rms < 1e-6

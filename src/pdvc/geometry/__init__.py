@@ -2,7 +2,7 @@
 
 from ._compare import ReprojectionError, reprojection_error, sample_points
 from ._nominal import circular_cone, parallel
-from ._poses import compose_poses, invert_poses, matrix_to_rotvec, rotvec_to_matrix
+from ._poses import compose_poses, invert_poses, matrix_to_rotvec, remove_mean_pose, rotvec_to_matrix
 from ._vector import VectorGeometry
 from ._volume import VolumeGeometry
 
@@ -15,6 +15,7 @@ __all__ = [
     "matrix_to_rotvec",
     "compose_poses",
     "invert_poses",
+    "remove_mean_pose",
     "reprojection_error",
     "ReprojectionError",
     "sample_points",

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import GeometryError
 
-__all__ = ["rotvec_to_matrix", "matrix_to_rotvec", "compose_poses", "invert_poses"]
+__all__ = ["rotvec_to_matrix", "matrix_to_rotvec", "compose_poses", "invert_poses", "remove_mean_pose"]
 
 
 def rotvec_to_matrix(rotvecs) -> np.ndarray:
@@ -45,3 +45,31 @@ def invert_poses(rv, t) -> tuple[np.ndarray, np.ndarray]:
     R = Rotation.from_rotvec(np.array(rv, np.float64))
     Rinv = R.inv()
     return Rinv.as_rotvec(), -Rinv.apply(np.array(t, np.float64))
+
+
+def remove_mean_pose(rv, t, *, center=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Fix the gauge: right-compose every pose with one rigid motion so the mean pose is the identity.
+
+    A global rigid motion ``G`` of the volume frame is unobservable: the
+    poses ``P_k`` and ``P_k ∘ G⁻¹`` describe the same scan with the
+    reconstruction moved by ``G``. This picks ``G`` so that the mean
+    rotation (chordal mean) is the identity and the mean position of
+    ``center`` is unchanged.
+
+    Returns
+    -------
+    rv, t : (n_views, 3) arrays, the re-gauged poses (``x -> R x + t``).
+    """
+    rv = np.array(rv, np.float64)
+    t = np.array(t, np.float64)
+    c = np.asarray(center, np.float64).reshape(3)
+    R = Rotation.from_rotvec(rv)
+    Rbar = R.mean()
+    # G⁻¹: x -> Rbarᵀ (x - g) with g chosen so that mean_k P_k(G⁻¹(c)) = c ... solved exactly:
+    Rk = (R * Rbar.inv()).as_matrix()  # R_k R̄ᵀ
+    A = Rk.mean(axis=0)
+    # mean_k [R_k R̄ᵀ (c - g) + t_k] = c  ->  A (c - g) = c - mean t
+    g = c - np.linalg.solve(A, c - t.mean(axis=0))
+    new_R = R * Rbar.inv()
+    new_t = t - np.einsum("kij,j->ki", Rk, g)
+    return new_R.as_rotvec(), new_t
