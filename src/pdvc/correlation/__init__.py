@@ -1,5 +1,33 @@
-"""The P-DVC engine (rigid motion per view from projections). Metrics for now."""
+"""The P-DVC engine: per-view rigid motion of the sample from its projections.
 
+:func:`correlate` measures it, regularised in space (6 rigid modes) and time
+(temporal bases, or PGD modes one at a time).
+"""
+
+from ._bases import TemporalBasis, bspline_basis, custom_basis, dirac_basis, fourier_basis, make_basis, polynomial_basis
+from ._engine import STATUS, CorrelationError, CorrelationResult, Mode, Observability, correlate
+from ._frames import lab_frames, lab_to_sample_map
 from ._metrics import shannon_entropy, snr_db
+from ._noise import estimate_noise_variance, poisson_variance
 
-__all__ = ["snr_db", "shannon_entropy"]
+__all__ = [
+    "correlate",
+    "CorrelationResult",
+    "CorrelationError",
+    "Mode",
+    "Observability",
+    "STATUS",
+    "TemporalBasis",
+    "make_basis",
+    "dirac_basis",
+    "polynomial_basis",
+    "fourier_basis",
+    "bspline_basis",
+    "custom_basis",
+    "lab_frames",
+    "lab_to_sample_map",
+    "estimate_noise_variance",
+    "poisson_variance",
+    "snr_db",
+    "shannon_entropy",
+]

@@ -157,8 +157,8 @@ class ViewReduction:
         view k alone (pose increment in ``POSE_PARAMETERS`` order).
     rss : (n_views,) float64
         Weighted residual sum of squares ``Σ w (s - Π f)²``.
-    weight_sum, meas_sum, meas_sq_sum : (n_views,) float64
-        ``Σ w``, ``Σ w s``, ``Σ w s²`` (for χ and the SNR of each view).
+    weight_sum, meas_sum, meas_sq_sum, resid_sum : (n_views,) float64
+        ``Σ w``, ``Σ w s``, ``Σ w s²``, ``Σ w ρ`` (for χ and the SNR of each view).
     center : (3,) float64
         Centre of the rotations used.
     """
@@ -169,11 +169,20 @@ class ViewReduction:
     weight_sum: np.ndarray
     meas_sum: np.ndarray
     meas_sq_sum: np.ndarray
+    resid_sum: np.ndarray
     center: np.ndarray
 
     @property
     def n_views(self) -> int:
         return self.M.shape[0]
+
+    def snr_db(self) -> np.ndarray:
+        """Per-view ``20 log10(std(s) / std(ρ))`` over the weighted pixels, dB."""
+        w = np.maximum(self.weight_sum, 1e-300)
+        var_s = self.meas_sq_sum / w - (self.meas_sum / w) ** 2
+        var_r = self.rss / w - (self.resid_sum / w) ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 10.0 * np.log10(var_s / var_r)
 
 
 def reduce_views(
@@ -234,6 +243,7 @@ def reduce_views(
         weight_sum=red[:, 28].copy(),
         meas_sum=red[:, 29].copy(),
         meas_sq_sum=red[:, 30].copy(),
+        resid_sum=red[:, 31].copy(),
         center=c,
     )
 

@@ -61,7 +61,7 @@ from numba import njit, prange
 #  3:6  centre of pixel (0, 0)
 #  6:9  step to the next column
 #  9:12 step to the next row
-N_RED = 31  # 21 (upper triangle of M) + 6 (b) + rss + sum w + sum w s + sum w s^2
+N_RED = 32  # 21 (upper triangle of M) + 6 (b) + rss + sum w + sum w s + sum w s^2 + sum w rho
 
 
 @njit(inline="always")
@@ -465,7 +465,7 @@ def jacobian_images_kernel(vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, g
 def jacobian_reduce_kernel(
     vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, geo, cone, meas, weights, partial
 ):
-    """Per (view, row): sums of w g gᵀ (upper triangle), w g ρ, w ρ², w, w s, w s².
+    """Per (view, row): sums of w g gᵀ (upper triangle), w g ρ, w ρ², w, w s, w s², w ρ.
 
     ρ = s - P (measured minus projected), so that M⁻¹ b is the Gauss-Newton
     step of one view.  ``weights`` has 1 or n_views leading entries.
@@ -501,5 +501,6 @@ def jacobian_reduce_kernel(
             acc[28] += w
             acc[29] += w * s
             acc[30] += w * s * s
+            acc[31] += w * rho
         for q in range(N_RED):
             partial[kr, q] = acc[q]

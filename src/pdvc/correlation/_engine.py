@@ -1,0 +1,668 @@
+"""P-DVC engine: rigid motion of the sample per view, regularised in time.
+
+Unknowns: ``u(x, θ_k) = Σ_n Σ_j a_nj σ_n(θ_k) ψ_j(x)``, ψ_j the six rigid
+modes about a centre c (``POSE_PARAMETERS`` order), σ_n a temporal basis.
+Every Gauss–Newton iteration is one fused Jacobian pass over the current
+geometry (``reduce_views``), giving per view ``M_k`` (6x6) and ``b_k``; all
+solves are then small and dense (``DESIGN.md`` §2):
+
+* full identification: ``H = Σ_k (σ_k σ_kᵀ) ⊗ M_k``, ``h = Σ_k σ_k ⊗ b_k``;
+* PGD: greedy space-time modes ``α(θ) Φ(x)`` by an alternating fixed point.
+
+Updates are composed exactly with the current poses (the geometry is
+rewritten, the volume never warped).  Unknowns are scaled so that one unit
+moves the sample by about one voxel (rotations times a radius), directions
+the data cannot see are found from the eigenvalues of the scaled normal
+matrix, left out of the update and reported with their standard deviation.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..errors import PdvcError, ShapeError
+from ..geometry import VectorGeometry, VolumeGeometry, compose_poses, sample_points
+from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
+from ._bases import TemporalBasis, make_basis
+from ._frames import lab_frames, lab_to_sample_map
+from ._noise import estimate_noise_variance
+
+__all__ = ["correlate", "CorrelationResult", "Mode", "Observability", "CorrelationError"]
+
+log = logging.getLogger(__name__)
+
+
+class CorrelationError(PdvcError, ValueError):
+    """Bad options for the correlation engine."""
+
+
+# Termination table (scipy.optimize.least_squares style)
+STATUS = {
+    0: "maximum number of iterations reached before convergence",
+    1: "converged: pose increment below tolerance",
+    2: "converged: chi stagnated at its floor",
+    3: "PGD stopped: chi reached the noise floor",
+    4: "PGD stopped: the last mode gained less than the threshold",
+    5: "PGD stopped: maximum number of modes reached",
+    -1: "stopped: chi rises at every damping; motion may be too large for the linearisation, start at a coarser scale",
+}
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One PGD space-time mode ``α(θ) Φ(x)``.
+
+    Attributes
+    ----------
+    spatial : (6,) float64
+        Φ as rigid-motion parameters in the chosen frame (length units, rad).
+    coefficients : (n_funcs,) float64
+        Temporal amplitudes a_n on the basis.
+    alpha : (n_views,) float64
+        α(θ_k) = Σ_n a_n σ_n(θ_k), normalised to max |α| = 1.
+    alpha_free : (n_views,) float64
+        The same spatial mode with a free (Dirac) history, measured at the end:
+        compare with ``alpha`` as in the paper's Figs 11–13.
+    chi : float
+        χ after this mode was added.
+    """
+
+    spatial: np.ndarray
+    coefficients: np.ndarray
+    alpha: np.ndarray
+    alpha_free: np.ndarray
+    chi: float
+
+
+@dataclass(frozen=True)
+class Observability:
+    """Directions of the unknowns the data cannot determine.
+
+    Attributes
+    ----------
+    directions : list of (6,) arrays
+        Unit directions in parameter space (scaled units: one unit ≈ one
+        voxel of motion), with the views they concern.
+    std : list of float
+        Their standard deviation (scaled units) from γ² H⁻¹; ``inf`` when
+        the data carry no information at all.
+    views : list
+        Index of the view (free temporal basis) or ``None`` (global).
+    condition : float
+        Condition number of the (scaled) normal matrix on the kept subspace.
+    """
+
+    directions: list = field(default_factory=list)
+    std: list = field(default_factory=list)
+    views: list = field(default_factory=list)
+    condition: float = 1.0
+
+    def describe(self) -> list[str]:
+        out = []
+        for d, s, v in zip(self.directions, self.std, self.views):
+            j = int(np.argmax(np.abs(d)))
+            where = "all views" if v is None else f"view {v}"
+            out.append(f"{POSE_PARAMETERS[j]}-like direction ({where}): std {s:.3g}")
+        return out
+
+
+@dataclass(frozen=True)
+class CorrelationResult:
+    """Outcome of :func:`correlate` (always the same structure).
+
+    Attributes
+    ----------
+    geometry : VectorGeometry
+        The calibrated geometry, ``geom.apply_poses(rotvecs, translations)``.
+    rotvecs, translations : (n_views, 3)
+        Poses ``x -> R_k x + t_k`` of the sample relative to the input
+        geometry (sample/volume frame), exactly as ``apply_poses`` takes them.
+    params : (n_views, 6)
+        The same poses as (tx, ty, tz, rx, ry, rz) about ``center``:
+        ``x -> R (x - c) + c + τ`` in the sample frame.
+    params_lab : (n_views, 6)
+        ``params`` expressed in the lab frame of each view.
+    std : (n_views, 6)
+        Standard deviations of ``params`` (sample frame) from γ² H⁻¹ at the
+        end; directions reported unobservable have ``nan``.
+    center : (3,)
+    frame : str
+    basis : TemporalBasis
+    method : str
+    modes : tuple of Mode
+        PGD modes (empty for full identification).
+    chi_history : (n_iter + 1,) float
+        χ before the first and after every accepted iteration.
+    snr_history : (n_iter + 1,) float
+        Overall SNR (dB) alongside.
+    mode_table : tuple of (n_modes, chi, snr_db)
+        χ and SNR after each PGD mode (the paper's Table 1); (0, χ0, SNR0) first.
+    snr_before, snr_after : (n_views,) float
+        Per-view SNR (dB) before and after.
+    noise_variance : float
+        γ² used to normalise χ.
+    observability : Observability
+    n_iter : int
+        Jacobian passes (each is one projection-sized pass over the data).
+    status : int
+        See ``STATUS``; > 0 converged or stopped on purpose.
+    message : str
+    """
+
+    geometry: VectorGeometry
+    rotvecs: np.ndarray
+    translations: np.ndarray
+    params: np.ndarray
+    params_lab: np.ndarray
+    std: np.ndarray
+    center: np.ndarray
+    frame: str
+    basis: TemporalBasis
+    method: str
+    modes: tuple
+    chi_history: np.ndarray
+    snr_history: np.ndarray
+    mode_table: tuple
+    snr_before: np.ndarray
+    snr_after: np.ndarray
+    noise_variance: float
+    observability: Observability
+    n_iter: int
+    status: int
+    message: str
+
+    @property
+    def chi(self) -> float:
+        return float(self.chi_history[-1])
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0
+
+
+# ----------------------------------------------------------------------------
+# poses
+# ----------------------------------------------------------------------------
+def _params_to_rt(params: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(τ, ω about c) -> (rotvec, t) of x -> R x + t."""
+    rv = params[:, 3:]
+    R = Rotation.from_rotvec(np.array(rv))
+    t = params[:, :3] + center - R.apply(center)
+    return np.array(rv), t
+
+
+def _rt_to_params(rv: np.ndarray, t: np.ndarray, center: np.ndarray) -> np.ndarray:
+    R = Rotation.from_rotvec(np.array(rv))
+    tau = t - center + R.apply(center)
+    return np.hstack([tau, rv])
+
+
+def _compose_increment(rv, t, delta_params, center):
+    """Current pose P, increment δ measured on the geometry posed by P: P ∘ δ."""
+    drv, dt = _params_to_rt(delta_params, center)
+    return compose_poses(rv, t, drv, dt)
+
+
+# ----------------------------------------------------------------------------
+# linear algebra helpers
+# ----------------------------------------------------------------------------
+def _scaling(radius: float) -> np.ndarray:
+    """Parameter scale: one scaled unit moves the sample by about one `radius`-unit."""
+    return np.array([1.0, 1.0, 1.0, 1.0 / radius, 1.0 / radius, 1.0 / radius])
+
+
+def _eig_solve(H: np.ndarray, h: np.ndarray, rcond: float, damping: float):
+    """Solve on the observable subspace of a symmetric H (batched over a leading axis).
+
+    Returns (x, kept_mask, eigvals, eigvecs).
+    """
+    w, V = np.linalg.eigh(H)
+    wmax = np.max(w, axis=-1, keepdims=True)
+    keep = w > rcond * np.maximum(wmax, 1e-300)
+    # damping on the kept eigenvalues: Levenberg-Marquardt in the eigenbasis
+    wd = np.where(keep, w + damping * np.where(keep, w, 0).mean(axis=-1, keepdims=True), 1.0)
+    proj = np.einsum("...ji,...j->...i", V, h)
+    x = np.einsum("...ij,...j->...i", V, np.where(keep, proj / wd, 0.0))
+    return x, keep, w, V
+
+
+@dataclass
+class _Problem:
+    volume: np.ndarray
+    vol_geom: VolumeGeometry
+    projections: np.ndarray
+    geom: VectorGeometry
+    weights: Optional[np.ndarray]
+    center: np.ndarray
+    T: Optional[np.ndarray]  # (n, 6, 6) lab -> sample, or None (sample frame)
+    free: np.ndarray  # (6,) bool
+    scale: np.ndarray  # (6,)
+    gamma2: float
+    backend: str
+    points: np.ndarray
+    n_pass: int = 0
+
+    def reduce(self, rv, t) -> ViewReduction:
+        self.n_pass += 1
+        g = self.geom.apply_poses(rv, t)
+        return reduce_views(self.volume, self.vol_geom, g, self.projections, weights=self.weights, center=self.center, backend=self.backend)
+
+    def chi(self, red: ViewReduction) -> float:
+        return float(np.sqrt(red.rss.sum() / (max(red.weight_sum.sum(), 1e-300) * self.gamma2)))
+
+    def framed(self, red: ViewReduction):
+        """M, b in the solve's frame and scaled units, restricted to free parameters."""
+        M, b = red.M, red.b
+        if self.T is not None:
+            M = np.einsum("kji,kjl,klm->kim", self.T, M, self.T)
+            b = np.einsum("kji,kj->ki", self.T, b)
+        S = self.scale
+        M = M * S[None, :, None] * S[None, None, :]
+        b = b * S[None, :]
+        f = self.free
+        return M[:, f][:, :, f], b[:, f]
+
+    def to_sample_params(self, delta_scaled_free: np.ndarray) -> np.ndarray:
+        """(n_views, n_free) scaled increments in the solve frame -> (n_views, 6) sample params."""
+        d = np.zeros((delta_scaled_free.shape[0], 6))
+        d[:, self.free] = delta_scaled_free
+        d = d * self.scale[None, :]
+        if self.T is not None:
+            d = np.einsum("kij,kj->ki", self.T, d)
+        return d
+
+    def max_displacement_px(self, rv, t, rv2, t2) -> float:
+        a = self.geom.apply_poses(rv, t).project_points(self.points)
+        b = self.geom.apply_poses(rv2, t2).project_points(self.points)
+        return float(np.max(np.linalg.norm(a - b, axis=-1)))
+
+
+# ----------------------------------------------------------------------------
+# full identification
+# ----------------------------------------------------------------------------
+def _assemble(S: np.ndarray, M: np.ndarray, b: np.ndarray):
+    n_f, nfree = S.shape[1], M.shape[1]
+    H = np.einsum("kn,km,kij->nimj", S, S, M).reshape(n_f * nfree, n_f * nfree)
+    h = np.einsum("kn,ki->ni", S, b).reshape(-1)
+    return H, h
+
+
+def _full_step(prob: _Problem, basis: TemporalBasis, red: ViewReduction, rcond: float, damping: float):
+    M, b = prob.framed(red)
+    nfree = M.shape[1]
+    if basis.kind == "dirac":
+        x, keep, w, V = _eig_solve(M, b, rcond, damping)
+        delta = x
+        obs = Observability()
+        for k in range(M.shape[0]):
+            for i in np.nonzero(~keep[k])[0]:
+                d = np.zeros(6)
+                d[prob.free] = V[k][:, i]
+                obs.directions.append(d)
+                obs.std.append(float(np.sqrt(prob.gamma2 / w[k, i])) if w[k, i] > 0 else float("inf"))
+                obs.views.append(k)
+        kept = np.where(keep, w, np.nan)
+        cond = float(np.nanmax(np.nanmax(kept, axis=1) / np.nanmin(kept, axis=1)))
+        cov = np.einsum("kij,kj,klj->kil", V, np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0), V)
+        var = np.einsum("kii->ki", cov) * prob.gamma2
+        var = np.where(np.abs(np.einsum("kij,kj->ki", V**2, ~keep)) > 1e-3, np.nan, var)
+    else:
+        Smat = basis.matrix
+        H, h = _assemble(Smat, M, b)
+        x, keep, w, V = _eig_solve(H, h, rcond, damping)
+        delta = (Smat @ x.reshape(basis.n_funcs, nfree))
+        obs = Observability()
+        for i in np.nonzero(~keep)[0]:
+            coeff = V[:, i].reshape(basis.n_funcs, nfree)
+            d = np.zeros(6)
+            d[prob.free] = coeff[int(np.argmax(np.abs(coeff).sum(1)))]
+            obs.directions.append(d / max(np.linalg.norm(d), 1e-300))
+            obs.std.append(float(np.sqrt(prob.gamma2 / w[i])) if w[i] > 0 else float("inf"))
+            obs.views.append(None)
+        kept = w[keep]
+        cond = float(kept.max() / kept.min()) if kept.size else float("inf")
+        cov = (V * np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)) @ V.T * prob.gamma2
+        cov4 = cov.reshape(basis.n_funcs, nfree, basis.n_funcs, nfree)
+        var = np.einsum("kn,nimi,km->ki", Smat, cov4, Smat)
+        bad = np.abs(V[:, ~keep]).sum(1).reshape(basis.n_funcs, nfree).sum(0) > 1e-3
+        var[:, bad] = np.nan
+    obs = Observability(obs.directions, obs.std, obs.views, cond)
+    return delta, obs, var
+
+
+# ----------------------------------------------------------------------------
+# public entry point
+# ----------------------------------------------------------------------------
+def correlate(
+    volume,
+    vol_geom: VolumeGeometry,
+    projections,
+    geom: VectorGeometry,
+    *,
+    basis="dirac",
+    method: str = "full",
+    frame: str = "sample",
+    center=None,
+    fixed=(),
+    weights=None,
+    noise_variance: Optional[float] = None,
+    angles=None,
+    times=None,
+    initial_rotvecs=None,
+    initial_translations=None,
+    max_iter: int = 20,
+    tol_px: float = 1e-3,
+    rcond: float = 1e-6,
+    max_modes: int = 5,
+    pgd_passes: int = 5,
+    mode_iter: int = 4,
+    min_gain: float = 0.01,
+    noise_floor: float = 1.05,
+    backend: str = "auto",
+    callback: Optional[Callable[[dict], None]] = None,
+) -> CorrelationResult:
+    """Find the rigid pose of the sample at every view from its projections.
+
+    Parameters
+    ----------
+    volume : (nz, ny, nx) array
+        Reconstruction of the sample (with ``geom``).
+    vol_geom : VolumeGeometry
+    projections : (n_views, n_rows, n_cols) array
+        Measured line integrals ``s``.
+    geom : VectorGeometry
+        Current geometry of the scan; the poses found are relative to it.
+    basis : str, TemporalBasis or (n_views, n_funcs) array
+        Temporal basis: ``"dirac"`` (free, one pose per view), ``"constant"``,
+        ``"poly:D"``, ``"fourier:M"`` (order M + constant + linear drift; the
+        paper's 4-function basis is ``"fourier:1"``), ``"spline:N"``.
+    method : {"full", "pgd"}
+        Full identification of all amplitudes, or PGD modes one at a time.
+    frame : {"sample", "lab"}
+        Frame of the rigid modes: in the lab frame a fixed lab translation
+        or tilt is one constant mode.
+    center : (x, y, z), optional
+        Centre of the rotation modes (default the volume centre).
+    fixed : iterable of str
+        Parameters held at zero, among ``POSE_PARAMETERS`` (in ``frame``).
+    weights : (n_rows, n_cols) or (n_views, n_rows, n_cols), optional
+        Pixel weights / ROI mask.
+    noise_variance : float, optional
+        γ² of the projections; estimated from them if absent.
+    angles, times : (n_views,) arrays, optional
+        Rotation angles (rad) and acquisition times for the temporal basis;
+        by default the angles are read from the geometry and the time is
+        the view index.
+    initial_rotvecs, initial_translations : (n_views, 3), optional
+        Starting poses (``apply_poses`` convention).
+    max_iter : int
+        Jacobian passes at most (full identification; per mode for PGD:
+        ``mode_iter``).
+    tol_px : float
+        Stop when the pose increment moves no sample point by more than this
+        many pixels on the detector.
+    rcond : float
+        Eigenvalues below ``rcond`` x the largest (scaled normal matrix) are
+        unobservable directions: left out and reported.
+    max_modes, pgd_passes, mode_iter, min_gain, noise_floor
+        PGD: at most ``max_modes`` modes; ``pgd_passes`` alternating passes
+        per fixed point; ``mode_iter`` re-projections per mode; stop when χ
+        falls below ``noise_floor`` or a mode lowers χ by less than the
+        fraction ``min_gain``.
+    callback : callable, optional
+        Called with a dict (iteration, chi, snr, step_px, mu) after each
+        iteration.
+
+    Returns
+    -------
+    CorrelationResult
+    """
+    vol = np.asarray(volume, dtype=np.float32)
+    s = np.asarray(projections, dtype=np.float32)
+    if not isinstance(geom, VectorGeometry) or not isinstance(vol_geom, VolumeGeometry):
+        raise CorrelationError("geom must be a VectorGeometry and vol_geom a VolumeGeometry")
+    n = geom.n_views
+    if s.shape != (n,) + geom.det_shape:
+        raise ShapeError(f"projections must have shape {(n,) + geom.det_shape}, got {s.shape}")
+    if method not in ("full", "pgd"):
+        raise CorrelationError(f"method must be 'full' or 'pgd', got {method!r}")
+    if frame not in ("sample", "lab"):
+        raise CorrelationError(f"frame must be 'sample' or 'lab', got {frame!r}")
+    free = np.ones(6, bool)
+    for name in fixed:
+        if name not in POSE_PARAMETERS:
+            raise CorrelationError(f"fixed must name parameters among {POSE_PARAMETERS}, got {name!r}")
+        free[POSE_PARAMETERS.index(name)] = False
+    if not free.any():
+        raise CorrelationError("fixed leaves no parameter to measure")
+    for name, val in (("max_iter", max_iter), ("max_modes", max_modes), ("pgd_passes", pgd_passes), ("mode_iter", mode_iter)):
+        if not isinstance(val, (int, np.integer)) or val < 1:
+            raise CorrelationError(f"{name} must be a positive int, got {val!r}")
+    if not (tol_px > 0):
+        raise CorrelationError(f"tol_px must be positive, got {tol_px!r}")
+
+    if angles is None:
+        F = lab_frames(geom)
+        angles = np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0]))
+    basis_obj = make_basis(basis, angles=np.asarray(angles, float), times=times) if not isinstance(basis, TemporalBasis) else basis
+    if basis_obj.n_views != n:
+        raise CorrelationError(f"basis must have {n} rows (views), got {basis_obj.n_views}")
+    c = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float).reshape(3)
+    radius = 0.5 * float(np.min(vol_geom.extent_xyz))
+    gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(s)
+    if not (gamma2 > 0):
+        raise CorrelationError(f"noise_variance must be positive, got {gamma2!r}")
+    prob = _Problem(
+        volume=vol,
+        vol_geom=vol_geom,
+        projections=s,
+        geom=geom,
+        weights=weights,
+        center=c,
+        T=lab_to_sample_map(geom) if frame == "lab" else None,
+        free=free,
+        scale=_scaling(radius),
+        gamma2=gamma2,
+        backend=backend,
+        points=sample_points(vol_geom, 3, fraction=0.8),
+    )
+    rv = np.zeros((n, 3)) if initial_rotvecs is None else np.array(initial_rotvecs, float).reshape(n, 3)
+    t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
+
+    red = prob.reduce(rv, t)
+    snr_before = red.snr_db()
+    chi_hist = [prob.chi(red)]
+    snr_hist = [_overall_snr(red)]
+    log.info("correlate: start chi = %.4g, SNR = %.2f dB, noise variance %.3g", chi_hist[0], snr_hist[0], gamma2)
+
+    if method == "full":
+        rv, t, red, status, var, obs, it = _run_full(prob, basis_obj, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rcond, callback)
+        modes: tuple = ()
+        mode_table = ()
+    else:
+        rv, t, red, status, var, obs, modes, mode_table = _run_pgd(
+            prob, basis_obj, rv, t, red, chi_hist, snr_hist, max_modes, pgd_passes, mode_iter, tol_px, rcond, min_gain, noise_floor, callback
+        )
+    params = _rt_to_params(rv, t, c)
+    F = lab_frames(geom)
+    params_lab = np.hstack([np.einsum("kji,kj->ki", F, params[:, :3]), np.einsum("kji,kj->ki", F, params[:, 3:])])
+    std = _std_sample(prob, var)
+    return CorrelationResult(
+        geometry=geom.apply_poses(rv, t),
+        rotvecs=rv,
+        translations=t,
+        params=params,
+        params_lab=params_lab,
+        std=std,
+        center=c,
+        frame=frame,
+        basis=basis_obj,
+        method=method,
+        modes=tuple(modes),
+        chi_history=np.array(chi_hist),
+        snr_history=np.array(snr_hist),
+        mode_table=tuple(mode_table),
+        snr_before=snr_before,
+        snr_after=red.snr_db(),
+        noise_variance=gamma2,
+        observability=obs,
+        n_iter=prob.n_pass,
+        status=status,
+        message=STATUS[status],
+    )
+
+
+def _overall_snr(red: ViewReduction) -> float:
+    w = max(red.weight_sum.sum(), 1e-300)
+    var_s = red.meas_sq_sum.sum() / w - (red.meas_sum.sum() / w) ** 2
+    var_r = red.rss.sum() / w - (red.resid_sum.sum() / w) ** 2
+    return float(10 * np.log10(var_s / var_r))
+
+
+def _std_sample(prob: _Problem, var_scaled_free: np.ndarray) -> np.ndarray:
+    """Per-view std of the sample-frame parameters from scaled, framed variances (diagonal only)."""
+    n = var_scaled_free.shape[0]
+    var = np.full((n, 6), 0.0)
+    var[:, prob.free] = var_scaled_free
+    var[:, ~prob.free] = 0.0
+    var = var * prob.scale[None, :] ** 2
+    if prob.T is not None:
+        T2 = prob.T**2
+        var = np.einsum("kij,kj->ki", T2, np.nan_to_num(var, nan=np.inf))
+        var[~np.isfinite(var)] = np.nan
+    return np.sqrt(var)
+
+
+def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rcond, callback):
+    mu = 0.0
+    status = 0
+    var = np.full((prob.geom.n_views, int(prob.free.sum())), np.nan)
+    obs = Observability()
+    it = 0
+    while prob.n_pass < max_iter + 1:
+        it += 1
+        delta_f, obs, var = _full_step(prob, basis, red, rcond, mu)
+        delta = prob.to_sample_params(delta_f)
+        rv2, t2 = _compose_increment(rv, t, delta, prob.center)
+        step_px = prob.max_displacement_px(rv, t, rv2, t2)
+        red2 = prob.reduce(rv2, t2)
+        chi2 = prob.chi(red2)
+        if chi2 <= chi_hist[-1] * (1 + 1e-9) or step_px < tol_px:
+            rv, t, red = rv2, t2, red2
+            chi_hist.append(chi2)
+            snr_hist.append(_overall_snr(red))
+            mu = mu / 10 if mu > 1e-6 else 0.0
+            log.info("iteration %d: chi %.5g, SNR %.2f dB, step %.3g px", it, chi2, snr_hist[-1], step_px)
+            if callback is not None:
+                callback(dict(iteration=it, chi=chi2, snr=snr_hist[-1], step_px=step_px, mu=mu))
+            if step_px < tol_px:
+                status = 1
+                break
+        else:
+            mu = max(1e-3, 10 * mu)
+            log.info("iteration %d: chi rose to %.5g; damping mu = %.3g", it, chi2, mu)
+            if mu > 1e6:
+                status = -1
+                break
+    return rv, t, red, status, var, obs, it
+
+
+def _pgd_fixed_point(M, b, S, passes, p0, a0):
+    """Alternate p ← (Σ α² M)⁻¹ Σ α b and a ← (Σ σσᵀ pᵀMp)⁻¹ Σ σ pᵀb; max|α| = 1."""
+    p, a = p0.copy(), a0.copy()
+    for _ in range(passes):
+        alpha = S @ a
+        A = np.einsum("k,kij->ij", alpha**2, M)
+        rhs = np.einsum("k,ki->i", alpha, b)
+        p_new = np.linalg.lstsq(A, rhs, rcond=1e-10)[0]
+        q = np.einsum("i,kij,j->k", p_new, M, p_new)
+        B = np.einsum("kn,k,km->nm", S, q, S)
+        r = np.einsum("kn,ki,i->n", S, b, p_new)
+        a_new = np.linalg.lstsq(B, r, rcond=1e-10)[0]
+        alpha = S @ a_new
+        m = np.max(np.abs(alpha))
+        if m == 0 or not np.isfinite(m):
+            break
+        i = int(np.argmax(np.abs(alpha)))
+        sgn = np.sign(alpha[i])
+        a_new, p_new = a_new / (m * sgn), p_new * (m * sgn)
+        change = max(np.linalg.norm(p_new - p) / max(np.linalg.norm(p_new), 1e-300), np.linalg.norm(a_new - a) / max(np.linalg.norm(a_new), 1e-300))
+        p, a = p_new, a_new
+        if change < 1e-3:
+            break
+    return p, a
+
+
+def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mode_iter, tol_px, rcond, min_gain, noise_floor, callback):
+    S = basis.matrix
+    modes = []
+    table = [(0, chi_hist[-1], snr_hist[-1])]
+    status = 5
+    obs = Observability()
+    var = np.full((prob.geom.n_views, int(prob.free.sum())), np.nan)
+    it = 0
+    for m in range(max_modes):
+        chi_start = chi_hist[-1]
+        if chi_start <= noise_floor:
+            status = 3
+            break
+        # initial guess: dominant direction of the free per-view solutions
+        M, b = prob.framed(red)
+        x, keep, _, _ = _eig_solve(M, b, rcond, 0.0)
+        _, _, Vt = np.linalg.svd(x, full_matrices=False)
+        p = Vt[0]
+        alpha0 = x @ p
+        a = np.linalg.lstsq(S, alpha0, rcond=None)[0]
+        total_alpha = np.zeros(S.shape[0])
+        p_mode = None
+        for _ in range(mode_iter):
+            it += 1
+            M, b = prob.framed(red)
+            p, a = _pgd_fixed_point(M, b, S, passes, p if p_mode is None else p_mode, a)
+            if p_mode is None:
+                p_mode = p.copy()
+            # the increment is α_k p; keep the mode's spatial direction for the history
+            delta = prob.to_sample_params(np.outer(S @ a, p))
+            rv2, t2 = _compose_increment(rv, t, delta, prob.center)
+            step_px = prob.max_displacement_px(rv, t, rv2, t2)
+            red2 = prob.reduce(rv2, t2)
+            chi2 = prob.chi(red2)
+            if chi2 > chi_hist[-1] * (1 + 1e-9) and step_px >= tol_px:
+                log.info("mode %d: chi rose to %.5g, update rejected", m + 1, chi2)
+                break
+            rv, t, red = rv2, t2, red2
+            # express the accumulated amplitude along the first direction of this mode
+            total_alpha += (S @ a) * float(p @ p_mode) / max(float(p_mode @ p_mode), 1e-300)
+            chi_hist.append(chi2)
+            snr_hist.append(_overall_snr(red))
+            if callback is not None:
+                callback(dict(iteration=it, mode=m + 1, chi=chi2, snr=snr_hist[-1], step_px=step_px, mu=0.0))
+            if step_px < tol_px:
+                break
+        # free (Dirac) history of the same spatial mode, at the end of the mode
+        M, b = prob.framed(red)
+        q = np.einsum("i,kij,j->k", p_mode, M, p_mode)
+        r = np.einsum("ki,i->k", b, p_mode)
+        free_alpha = total_alpha + np.where(q > 0, r / np.where(q > 0, q, 1.0), np.nan)
+        scale = np.max(np.abs(total_alpha)) or 1.0
+        spatial = np.zeros(6)
+        spatial[prob.free] = p_mode * scale
+        spatial = spatial * prob.scale
+        coeffs = np.linalg.lstsq(S, total_alpha / scale, rcond=None)[0]
+        modes.append(Mode(spatial=spatial, coefficients=coeffs, alpha=total_alpha / scale, alpha_free=free_alpha / scale, chi=chi_hist[-1]))
+        table.append((m + 1, chi_hist[-1], snr_hist[-1]))
+        log.info("mode %d: chi %.5g -> %.5g", m + 1, chi_start, chi_hist[-1])
+        if chi_start - chi_hist[-1] < min_gain * chi_start:
+            status = 4
+            break
+    else:
+        status = 5
+    if chi_hist[-1] <= noise_floor:
+        status = 3
+    _, obs, var = _full_step(prob, basis, red, rcond, 0.0)
+    return rv, t, red, status, var, obs, modes, table
