@@ -197,6 +197,7 @@ def test_reduce_views_equals_image_reduction(kind):
     np.testing.assert_allclose(red.rss, np.einsum("kn,kn->k", W, rho**2), rtol=1e-4)
     np.testing.assert_allclose(red.weight_sum, W.sum(1), rtol=1e-6)
     np.testing.assert_allclose(red.meas_sum, np.einsum("kn,kn->k", W, measured.reshape(4, -1)), rtol=1e-5)
+    np.testing.assert_allclose(red.resid_sum, np.einsum("kn,kn->k", W, rho), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(red.M, red.M.transpose(0, 2, 1))
     # a 2D mask is shared by all views
     mask = np.zeros((28, 30), np.float32)
