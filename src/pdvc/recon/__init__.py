@@ -1,0 +1,17 @@
+"""Analytic reconstruction over per-view vector geometry.
+
+* :func:`fdk`: Feldkamp-Davis-Kress for (near-)circular cone beam, full or
+  short scan (Parker), irregular angles;
+* :func:`fbp`: filtered back-projection for parallel beam;
+* :func:`ramp_filter_response`: the windowed ramp filters they use
+  (:data:`FILTERS` lists the names).
+
+Both accept a corrected geometry (each view's source and detector moved
+and tilted) directly: the back-projection uses every view's exact
+projection matrix.
+"""
+
+from ._fbp import fbp, fdk
+from ._filters import FILTERS, ramp_filter_response
+
+__all__ = ["fdk", "fbp", "ramp_filter_response", "FILTERS"]

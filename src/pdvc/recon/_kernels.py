@@ -1,0 +1,163 @@
+"""Voxel-driven weighted back-projection (numba, parallel over y).
+
+One call adds a block of filtered views to the volume:
+
+    f[z, y, x] += sum_b  W_b(x) * bilinear(q_b, row_b(x), col_b(x))
+
+with, for voxel index ``x = (ix, iy, iz, 1)`` and the view's 3 x 4 matrix
+``P_b`` in index coordinates, ``w = P_b x``, ``col = w0 / w2``,
+``row = w1 / w2`` (pixel indices) and ``W = 1 / w2**2`` (``w2`` is
+``depth / SOD``, so ``W`` is FDK's ``(SOD / depth)**2``; 1 for parallel
+beam, whose ``P`` has third row ``(0, 0, 0, 1)``).
+
+Loop order, chosen for memory traffic (``DESIGN.md`` §4): threads split the
+``y`` rows; each thread copies its ``(x, z)`` slab into a private
+``(nx, nz)`` buffer (256 KiB for 256^2, L2 resident), adds every view of
+the block with ``z`` innermost, and writes the slab back. ``w`` is affine
+in ``iz`` so the inner loop uses no recursion (no loop-carried
+dependency); the filtered views are stored transposed, ``q[b, col, row]``,
+so consecutive ``z`` read consecutive memory. The ``z`` range whose
+projection falls on the detector is solved in closed form (the bounds are
+linear inequalities in ``iz`` because ``w2 > 0``), so the inner loop has no
+branches. For views whose ``col`` and ``w2`` do not depend on ``z`` (a
+detector column parallel to the volume's z axis: every nominal circular
+scan about z) a cheaper inner loop without the division is used.
+
+Measured (``benchmarks/bench_fdk.py``, 256^3 voxels x 360 views, 2-core
+AMD EPYC VM): about 2.3 ns per voxel-view update per thread on that path,
+4.2 ns on the general one (the per-voxel division is ~15 % of it, the rest
+the moving column and 2-D indexing). The loop stays scalar: LLVM does not
+vectorise the data-dependent gathers, so it is bound by instruction
+throughput, not memory.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+__all__ = ["backproject_block"]
+
+
+@nb.njit(cache=True, inline="always")
+def _z_range(c0, c1, lo, hi):
+    """Intersect ``[lo, hi]`` with ``{z : c0 + c1 z >= 0}``."""
+    if c1 == 0.0:
+        if c0 < 0.0:
+            return 1.0, 0.0
+        return lo, hi
+    z = -c0 / c1
+    if c1 > 0.0:
+        return max(lo, z), hi
+    return lo, min(hi, z)
+
+
+_U1 = np.uint64(1)
+
+
+@nb.njit(cache=True, parallel=True, fastmath={"contract"}, error_model="numpy", boundscheck=False)
+def backproject_block(vol, q, P, zinv):  # pragma: no cover - compiled
+    """Add views ``q`` (``(n_b, n_cols, n_rows)`` float32) to ``vol`` (``(nz, ny, nx)`` float32).
+
+    ``P``: ``(n_b, 3, 4)`` float64 matrices in voxel-index coordinates
+    ``(ix, iy, iz, 1)``; ``zinv``: ``(n_b,)`` bool, True where ``P[:, 0, 2]``
+    and ``P[:, 2, 2]`` are zero (column and weight independent of ``iz``).
+    Every voxel must be in front of the source (``w2 > 0``; checked by the
+    caller). Indices are unsigned so that numba emits no wrap-around code;
+    ``fastmath`` only allows fused multiply-adds.
+    """
+    nz, ny, nx = vol.shape
+    nb_ = q.shape[0]
+    nc = q.shape[1]
+    nr = q.shape[2]
+    cmax = nc - 1.0
+    rmax = nr - 1.0
+    jmax = np.uint64(nc - 2)
+    imax = np.uint64(nr - 2)
+    unr = np.uint64(nr)
+    for iy in nb.prange(ny):
+        buf = np.empty((nx, nz), np.float32)
+        for iz in range(nz):
+            for ix in range(nx):
+                buf[ix, iz] = vol[iz, iy, ix]
+        for b in range(nb_):
+            qb = q[b]
+            qf = qb.ravel()
+            p00 = P[b, 0, 0]
+            p01 = P[b, 0, 1]
+            a0 = P[b, 0, 2]
+            p03 = P[b, 0, 3]
+            p10 = P[b, 1, 0]
+            p11 = P[b, 1, 1]
+            a1 = P[b, 1, 2]
+            p13 = P[b, 1, 3]
+            p20 = P[b, 2, 0]
+            p21 = P[b, 2, 1]
+            a2 = P[b, 2, 2]
+            p23 = P[b, 2, 3]
+            fast = zinv[b]
+            for ix in range(nx):
+                bx = buf[ix]
+                w0 = p00 * ix + p01 * iy + p03
+                w1 = p10 * ix + p11 * iy + p13
+                w2 = p20 * ix + p21 * iy + p23
+                if fast:
+                    inv = 1.0 / w2
+                    col = w0 * inv
+                    if col < 0.0 or col > cmax:
+                        continue
+                    j = min(np.uint64(col), jmax)
+                    fc = col - np.float64(j)
+                    wgt = inv * inv
+                    wa = np.float32(wgt * (1.0 - fc))
+                    wb = np.float32(wgt * fc)
+                    r0 = w1 * inv
+                    dr = a1 * inv
+                    # 0 <= r0 + z dr <= rmax
+                    zlo, zhi = _z_range(r0, dr, 0.0, nz - 1.0)
+                    zlo, zhi = _z_range(rmax - r0, -dr, zlo, zhi)
+                    if zlo > zhi:
+                        continue
+                    izlo = np.uint64(math.ceil(zlo))
+                    izhi = np.uint64(math.floor(zhi))
+                    qa = qb[j]
+                    qc = qb[j + _U1]
+                    for iz in range(izlo, izhi + _U1):
+                        r = r0 + np.float64(iz) * dr
+                        i = min(np.uint64(max(r, 0.0)), imax)  # max: no negative to unsigned
+                        fr = np.float32(r - np.float64(i))
+                        va = qa[i] + fr * (qa[i + _U1] - qa[i])
+                        vc = qc[i] + fr * (qc[i + _U1] - qc[i])
+                        bx[iz] += wa * va + wb * vc
+                else:
+                    # w2 + z a2 > 0 on the whole volume (checked by the caller)
+                    zlo, zhi = _z_range(w0, a0, 0.0, nz - 1.0)  # col >= 0
+                    zlo, zhi = _z_range(cmax * w2 - w0, cmax * a2 - a0, zlo, zhi)  # col <= cmax
+                    zlo, zhi = _z_range(w1, a1, zlo, zhi)  # row >= 0
+                    zlo, zhi = _z_range(rmax * w2 - w1, rmax * a2 - a1, zlo, zhi)  # row <= rmax
+                    if zlo > zhi:
+                        continue
+                    izlo = np.uint64(math.ceil(zlo))
+                    izhi = np.uint64(math.floor(zhi))
+                    for iz in range(izlo, izhi + _U1):
+                        z = np.float64(iz)
+                        inv = 1.0 / (w2 + z * a2)
+                        col = (w0 + z * a0) * inv
+                        r = (w1 + z * a1) * inv
+                        j = min(np.uint64(max(col, 0.0)), jmax)
+                        i = min(np.uint64(max(r, 0.0)), imax)  # max: no negative to unsigned
+                        fc = np.float32(col - np.float64(j))
+                        fr = np.float32(r - np.float64(i))
+                        k = j * unr + i
+                        q00 = qf[k]
+                        q01 = qf[k + _U1]
+                        q10 = qf[k + unr]
+                        q11 = qf[k + unr + _U1]
+                        va = q00 + fr * (q01 - q00)
+                        vc = q10 + fr * (q11 - q10)
+                        bx[iz] += np.float32(inv * inv) * (va + fc * (vc - va))
+        for iz in range(nz):
+            for ix in range(nx):
+                vol[iz, iy, ix] = buf[ix, iz]
