@@ -126,7 +126,7 @@ def test_jacobian_matches_finite_differences(kind):
     geom = random_geometry(kind, rng, n_views=3, det_shape=(36, 40), tilt=0.1, shift=1.0)
     center = np.array([1.0, -0.5, 2.0])
     proj, sens = jacobian(f, vg, geom, center=center)
-    np.testing.assert_array_equal(proj, forward(f, vg, geom))
+    np.testing.assert_allclose(proj, forward(f, vg, geom), rtol=1e-5, atol=1e-6)  # same model, summed in another order
     keep = np.empty(proj.shape, bool)
     for k in range(geom.n_views):
         pc = geom.pixel_centers(k)

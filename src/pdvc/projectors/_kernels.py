@@ -61,6 +61,11 @@ from numba import njit, prange
 #  3:6  centre of pixel (0, 0)
 #  6:9  step to the next column
 #  9:12 step to the next row
+# Floating-point licence of the kernels: contraction to FMA, reassociation of
+# sums, no signed zeros, reciprocal division. Not "nnan"/"ninf": the ray
+# clipping must stay correct for rays parallel to a grid plane.
+_FAST = {"contract", "reassoc", "nsz", "arcp"}
+
 N_RED = 32  # 21 (upper triangle of M) + 6 (b) + rss + sum w + sum w s + sum w s^2 + sum w rho
 
 
@@ -180,6 +185,16 @@ def _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, interior):
 
 
 @njit(inline="always")
+def _interior(ilo, ihi, jlo, jhi):
+    """Interior range clipped into [ilo, ihi]; empty as (ihi + 1, ihi)."""
+    jlo = max(jlo, ilo)
+    jhi = min(jhi, ihi)
+    if jlo > jhi:
+        return ihi + 1, ihi
+    return jlo, jhi
+
+
+@njit(inline="always")
 def _path_length(da, dx, dy, dz, spx, spy, spz):
     wx, wy, wz = dx * spx, dy * spy, dz * spz
     return math.sqrt(wx * wx + wy * wy + wz * wz) / abs(da)
@@ -191,16 +206,41 @@ def _line_integral(vf, sx, sy, sz, dx, dy, dz, nx, ny, nz, spx, spy, spz, cone):
     rb = db / da
     rc = dc / da
     ilo, ihi, jlo, jhi = _clip(sa, sb, sc, da, rb, rc, na, nb, nc, cone)
+    jlo, jhi = _interior(ilo, ihi, jlo, jhi)
     acc = 0.0
-    for i in range(ilo, ihi + 1):
-        interior = jlo <= i <= jhi
-        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, interior)
-        f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, interior)
+    # border samples before the interior (or all samples if there is none)
+    for i in range(ilo, min(jlo, ihi + 1)):
+        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
+        f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, False)
+        acc += (1.0 - wc) * (f00 + wb * (f10 - f00)) + wc * (f01 + wb * (f11 - f01))
+    # interior: all four neighbours inside, incremental and branch-free
+    nb2 = nb - 2
+    nc2 = nc - 2
+    pb = sb + (jlo - sa) * rb
+    pc = sc + (jlo - sa) * rc
+    o = jlo * sta
+    for i in range(jlo, jhi + 1):
+        ib = min(int(pb), nb2)  # int() truncates: pb >= -eps gives 0
+        ic = min(int(pc), nc2)
+        wb = pb - ib
+        wc = pc - ic
+        oo = o + ib * stb + ic * stc
+        f00 = vf[oo]
+        f10 = vf[oo + stb]
+        f01 = vf[oo + stc]
+        f11 = vf[oo + stb + stc]
+        acc += (1.0 - wc) * (f00 + wb * (f10 - f00)) + wc * (f01 + wb * (f11 - f01))
+        pb += rb
+        pc += rc
+        o += sta
+    for i in range(max(jhi + 1, ilo), ihi + 1):
+        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
+        f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, False)
         acc += (1.0 - wc) * (f00 + wb * (f10 - f00)) + wc * (f01 + wb * (f11 - f01))
     return acc * _path_length(da, dx, dy, dz, spx, spy, spz)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FAST)
 def forward_kernel(vf, shape_xyz, spacing_xyz, geo, cone, out):
     """out[k, r, c] = line integral of pixel (r, c) of view k."""
     nx, ny, nz = shape_xyz[0], shape_xyz[1], shape_xyz[2]
@@ -268,7 +308,7 @@ def _window(geo, k, cone, box_lo, box_hi, n_rows, n_cols):
     return r0, r1, c0, c1
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FAST)
 def adjoint_kernel(proj, shape_xyz, spacing_xyz, geo, cone, slab_edges, out):
     """out (raveled f[z, y, x]) = exact transpose of forward_kernel applied to proj."""
     nx, ny, nz = shape_xyz[0], shape_xyz[1], shape_xyz[2]
@@ -365,20 +405,39 @@ def _ray_sums(vf, sx, sy, sz, dx, dy, dz, nx, ny, nz, cone):
     t_b = 0.0
     t_c = 0.0
     inv_da = 1.0 / da
-    for i in range(ilo, ihi + 1):
-        interior = jlo <= i <= jhi
-        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, interior)
-        f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, interior)
-        d0 = f10 - f00
-        d1 = f11 - f01
-        s0 += (1.0 - wc) * (f00 + wb * d0) + wc * (f01 + wb * d1)
-        gb = (1.0 - wc) * d0 + wc * d1
-        gc = (1.0 - wb) * (f01 - f00) + wb * (f11 - f10)
-        ti = (i - sa) * inv_da
-        s_b += gb
-        s_c += gc
-        t_b += ti * gb
-        t_c += ti * gc
+    jlo, jhi = _interior(ilo, ihi, jlo, jhi)
+    for part in range(3):
+        if part == 0:
+            i0, i1 = ilo, min(jlo, ihi + 1)
+        elif part == 1:
+            i0, i1 = jlo, jhi + 1
+        else:
+            i0, i1 = max(jhi + 1, ilo), ihi + 1
+        interior = part == 1
+        pb = sb + (i0 - sa) * rb
+        pc = sc + (i0 - sa) * rc
+        ti = (i0 - sa) * inv_da
+        for i in range(i0, i1):
+            if interior:
+                ib = min(int(pb), nb - 2)
+                ic = min(int(pc), nc - 2)
+                wb = pb - ib
+                wc = pc - ic
+            else:
+                ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
+            f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, interior)
+            d0 = f10 - f00
+            d1 = f11 - f01
+            s0 += (1.0 - wc) * (f00 + wb * d0) + wc * (f01 + wb * d1)
+            gb = (1.0 - wc) * d0 + wc * d1
+            gc = (1.0 - wb) * (f01 - f00) + wb * (f11 - f10)
+            s_b += gb
+            s_c += gc
+            t_b += ti * gb
+            t_c += ti * gc
+            pb += rb
+            pc += rc
+            ti += inv_da
     return a, s0, s_b, s_c, t_b, t_c
 
 
@@ -442,7 +501,7 @@ def _sensitivities(g, vf, sx, sy, sz, dx, dy, dz, nx, ny, nz, spx, spy, spz, ox,
     return L * s0
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FAST)
 def jacobian_images_kernel(vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, geo, cone, out_proj, out_sens):
     nx, ny, nz = shape_xyz[0], shape_xyz[1], shape_xyz[2]
     spx, spy, spz = spacing_xyz[0], spacing_xyz[1], spacing_xyz[2]
@@ -461,7 +520,7 @@ def jacobian_images_kernel(vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, g
                 out_sens[k, j, r, c] = g[j]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FAST)
 def jacobian_reduce_kernel(
     vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, geo, cone, meas, weights, partial
 ):
