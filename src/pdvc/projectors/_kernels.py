@@ -195,6 +195,23 @@ def _interior(ilo, ihi, jlo, jhi):
 
 
 @njit(inline="always")
+def _scatter_checked(buf, o, ib, wb, ic, wc, w, stb, stc, nb, nc, own_lo, own_hi):
+    """Scatter one border sample: only targets inside the grid and in owned c-rows."""
+    b0 = ib >= 0
+    b1 = ib + 1 <= nb - 1
+    c0 = ic >= 0 and own_lo <= ic < own_hi
+    c1 = ic + 1 <= nc - 1 and own_lo <= ic + 1 < own_hi
+    if b0 and c0:
+        buf[o + ib * stb + ic * stc] += w * (1.0 - wb) * (1.0 - wc)
+    if b1 and c0:
+        buf[o + (ib + 1) * stb + ic * stc] += w * wb * (1.0 - wc)
+    if b0 and c1:
+        buf[o + ib * stb + (ic + 1) * stc] += w * (1.0 - wb) * wc
+    if b1 and c1:
+        buf[o + (ib + 1) * stb + (ic + 1) * stc] += w * wb * wc
+
+
+@njit(inline="always")
 def _path_length(da, dx, dy, dz, spx, spy, spz):
     wx, wy, wz = dx * spx, dy * spy, dz * spz
     return math.sqrt(wx * wx + wy * wy + wz * wz) / abs(da)
@@ -319,7 +336,9 @@ def adjoint_kernel(proj, shape_xyz, spacing_xyz, geo, cone, slab_edges, out):
     for s in prange(n_slabs):
         zlo = slab_edges[s]
         zhi = slab_edges[s + 1]
-        buf = np.zeros((zhi - zlo) * plane, dtype=np.float64)
+        # the slab's rows of the output, owned by this iteration only
+        buf = out[zlo * plane : zhi * plane]
+        buf[:] = 0.0
         # index box of every sample that can touch the slab (zero-padded support)
         box_lo = np.array([-1.0, -1.0, max(zlo - 1.0, -1.0)])
         box_hi = np.array([float(nx), float(ny), min(float(zhi), float(nz))])
@@ -354,42 +373,48 @@ def adjoint_kernel(proj, shape_xyz, spacing_xyz, geo, cone, slab_edges, out):
                         ihi = min(ihi, int(math.ceil(i2)))
                     elif sc < zlo - 1.5 or sc > zhi + 0.5:
                         continue
-                    for i in range(ilo, ihi + 1):
-                        interior = jlo <= i <= jhi
-                        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, interior)
-                        w00 = w * (1.0 - wb) * (1.0 - wc)
-                        w10 = w * wb * (1.0 - wc)
-                        w01 = w * (1.0 - wb) * wc
-                        w11 = w * wb * wc
-                        if a == 2:
-                            o = i * sta - base
-                            z0 = True
-                            z1 = True
-                        else:
-                            o = i * sta - base
-                            z0 = zlo <= ic < zhi
-                            z1 = zlo <= ic + 1 < zhi
-                        if interior and a == 2:
-                            oo = o + ib * stb + ic * stc
-                            buf[oo] += w00
-                            buf[oo + stb] += w10
-                            buf[oo + stc] += w01
-                            buf[oo + stb + stc] += w11
-                            continue
-                        b0 = ib >= 0
-                        b1 = ib + 1 <= nb - 1
-                        c0 = ic >= 0 and z0
-                        c1 = ic + 1 <= nc - 1 and z1
-                        if b0 and c0:
-                            buf[o + ib * stb + ic * stc] += w00
-                        if b1 and c0:
-                            buf[o + (ib + 1) * stb + ic * stc] += w10
-                        if b0 and c1:
-                            buf[o + ib * stb + (ic + 1) * stc] += w01
-                        if b1 and c1:
-                            buf[o + (ib + 1) * stb + (ic + 1) * stc] += w11
-        for q in range(buf.shape[0]):
-            out[base + q] = buf[q]
+                    # owned rows along c (z when a != 2; every row when the planes are z)
+                    own_lo, own_hi = (-2, nc + 2) if a == 2 else (zlo, zhi)
+                    # fast range: interior samples whose four targets are all owned
+                    flo, fhi = _interior(ilo, ihi, jlo, jhi)
+                    if a != 2 and flo <= fhi:
+                        if rc != 0.0:
+                            i1 = sa + (zlo + 1e-6 - sc) / rc
+                            i2 = sa + (zhi - 1.0 - 1e-6 - sc) / rc
+                            if i1 > i2:
+                                i1, i2 = i2, i1
+                            flo = max(flo, int(math.ceil(i1)))
+                            fhi = min(fhi, int(math.floor(i2)))
+                        elif sc < zlo + 1e-6 or sc > zhi - 1.0 - 1e-6:
+                            fhi = flo - 1
+                        if flo > fhi:
+                            flo, fhi = ihi + 1, ihi
+                    for i in range(ilo, min(flo, ihi + 1)):
+                        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
+                        _scatter_checked(buf, i * sta - base, ib, wb, ic, wc, w, stb, stc, nb, nc, own_lo, own_hi)
+                    nb2 = nb - 2
+                    nc2 = nc - 2
+                    pb = sb + (flo - sa) * rb
+                    pc = sc + (flo - sa) * rc
+                    o = flo * sta - base
+                    for i in range(flo, fhi + 1):
+                        ib = min(int(pb), nb2)
+                        ic = min(int(pc), nc2)
+                        wb = pb - ib
+                        wc = pc - ic
+                        oo = o + ib * stb + ic * stc
+                        wv = w * (1.0 - wc)
+                        buf[oo] += wv * (1.0 - wb)
+                        buf[oo + stb] += wv * wb
+                        wv = w * wc
+                        buf[oo + stc] += wv * (1.0 - wb)
+                        buf[oo + stb + stc] += wv * wb
+                        pb += rb
+                        pc += rc
+                        o += sta
+                    for i in range(max(fhi + 1, ilo), ihi + 1):
+                        ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
+                        _scatter_checked(buf, i * sta - base, ib, wb, ic, wc, w, stb, stc, nb, nc, own_lo, own_hi)
 
 
 @njit(inline="always")
