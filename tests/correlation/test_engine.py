@@ -62,8 +62,6 @@ def test_temporal_bases_recover_motion_in_their_span(setup, basis):
     rng = np.random.default_rng(1)
     coef = rng.normal(0, 1, (B.shape[1], 6)) * [0.4, 0.4, 0.4, 0.006, 0.006, 0.006]
     p = B @ coef  # params about the volume centre (the origin here)
-    from scipy.spatial.transform import Rotation
-
     rv = p[:, 3:]
     t = p[:, :3]  # centre at the origin: x -> R x + tau
     res = correlate(vol, vg, _data(vol, vg, geom, rv, t), geom, basis=basis, noise_variance=1e-4, max_iter=15, tol_px=1e-4)

@@ -50,7 +50,7 @@ def test_weights_errors():
         detector_weights((6, 8), mask=np.ones((8, 6)))
     with pytest.raises(RoiError, match=r"\[0, 1\]"):
         detector_weights((6, 8), mask=np.full((6, 8), 2.0))
-    with pytest.raises(pdvc.ShapeError, match="det_shape"):
+    with pytest.raises(pdvc.GeometryError, match="det_shape"):
         detector_weights((6, 0))
     with pytest.raises(RoiError, match="margin"):
         detector_weights((6, 8), margin=-1)

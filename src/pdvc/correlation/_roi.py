@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputTypeError, PdvcError, ShapeError
+from ..geometry._vector import _check_det_shape
 from ..geometry import VectorGeometry, VolumeGeometry
 
 __all__ = ["RoiError", "detector_weights", "cone_artifact_rows"]
@@ -25,18 +26,7 @@ class RoiError(PdvcError, ValueError):
 
 
 def _det_shape(det_shape) -> tuple[int, int]:
-    try:
-        shape = tuple(det_shape)
-    except TypeError:
-        shape = None
-    if (
-        shape is None
-        or len(shape) != 2
-        or not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) for n in shape)
-        or any(n < 1 for n in shape)
-    ):
-        raise ShapeError(f"det_shape must be two positive ints (n_rows, n_cols), got {det_shape!r}")
-    return int(shape[0]), int(shape[1])
+    return _check_det_shape(det_shape)
 
 
 def _range(value, n: int, name: str) -> tuple[int, int]:
