@@ -4,6 +4,7 @@ from .errors import BackendError, GeometryError, InputTypeError, PdvcError, Shap
 from .geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
 from .projectors import backproject, forward, jacobian, reduce_views
 from .recon import fbp, fdk
+from .correlation import correlate
 
 __version__ = "0.1.0"
 
@@ -23,4 +24,5 @@ __all__ = [
     "reduce_views",
     "fdk",
     "fbp",
+    "correlate",
 ]
