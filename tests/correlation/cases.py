@@ -33,12 +33,23 @@ class Case:
     points: np.ndarray
 
 
-def make_case(name: str, *, n: int = 48, n_views: int = 90, kind: str = "cone", seed: int = 0, i0: float = 2e4) -> Case:
+def make_case(
+    name: str,
+    *,
+    n: int = 48,
+    n_views: int = 90,
+    kind: str = "cone",
+    seed: int = 0,
+    i0: float = 2e4,
+    sod: float = 8.0,
+    odd: float = 4.0,
+) -> Case:
     vg = pdvc.VolumeGeometry((n, n, n))
     angles = np.linspace(0, 2 * np.pi, n_views, endpoint=False)
     det = (int(1.2 * n), int(1.4 * n))
     if kind == "cone":
-        geom = pdvc.circular_cone(angles, sod=8.0 * n, odd=4.0 * n, det_shape=det, pixel=1.5)
+        mag = (sod + odd) / sod  # detector pixel = one voxel at the rotation axis
+        geom = pdvc.circular_cone(angles, sod=sod * n, odd=odd * n, det_shape=det, pixel=mag)
     else:
         geom = pdvc.parallel(angles, det_shape=det, pixel=1.0)
     phantom = cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=3 * n, seed=seed)

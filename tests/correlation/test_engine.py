@@ -143,3 +143,29 @@ def test_bad_options_raise(setup):
         correlate(vol, vg, s[:3], geom)
     with pytest.raises(CorrelationError, match="max_iter"):
         correlate(vol, vg, s, geom, max_iter=0)
+
+
+def test_multiscale_converges_from_a_motion_too_large_for_one_scale(setup):
+    """A 14-voxel lab offset: with the same 4 passes per scale, one scale stalls, 4-2-1 converges."""
+    vg, vol, geom, angles = setup
+    T = lab_to_sample_map(geom)
+    p_lab = np.array([14.0, 0.0, 3.0, 0.0, 0.0, 0.0])
+    p = np.einsum("kij,j->ki", T, p_lab)
+    data = _data(vol, vg, geom, p[:, 3:], p[:, :3])
+    kw = dict(basis="constant", frame="lab", noise_variance=1e-4, tol_px=1e-4, max_iter=4)
+    single = correlate(vol, vg, data, geom, **kw)
+    multi = correlate(vol, vg, data, geom, scales=(4, 2, 1), **kw)
+    assert [h[0] for h in multi.scale_history] == [4, 2, 1]
+    assert multi.geometry.det_shape == geom.det_shape
+    e_multi = _err(geom, multi.geometry, vg, p[:, 3:], p[:, :3])
+    e_single = _err(geom, single.geometry, vg, p[:, 3:], p[:, :3])
+    assert e_multi < 5e-3
+    assert e_single > 1.0 and not single.success
+    assert multi.scale_history[-1][1] < 1e-3 * multi.scale_history[0][1]  # the fine scale starts converged-ish
+    np.testing.assert_allclose(multi.params_lab.mean(axis=0)[:3], p_lab[:3], atol=2e-3)
+
+
+def test_multiscale_rejects_bad_schedule(setup):
+    vg, vol, geom, angles = setup
+    with pytest.raises(CorrelationError, match="scales"):
+        correlate(vol, vg, _data(vol, vg, geom, np.zeros((36, 3)), np.zeros((36, 3))), geom, scales=(2, 0))

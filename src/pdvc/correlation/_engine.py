@@ -19,7 +19,7 @@ matrix, left out of the update and reported with their standard deviation.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -31,6 +31,7 @@ from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
 from ._bases import TemporalBasis, make_basis
 from ._frames import lab_frames, lab_to_sample_map
 from ._noise import estimate_noise_variance
+from ._scales import coarse_grain, coarse_noise_factor, coarse_volume
 
 __all__ = ["correlate", "CorrelationResult", "Mode", "Observability", "CorrelationError"]
 
@@ -152,6 +153,9 @@ class CorrelationResult:
     status : int
         See ``STATUS``; > 0 converged or stopped on purpose.
     message : str
+    scale_history : tuple of (scale, chi_start, chi_end, n_iter)
+        One entry per scale of a multi-scale run (``scales=``), coarse to
+        fine; the histories and per-view SNR above belong to the last scale.
     """
 
     geometry: VectorGeometry
@@ -175,6 +179,7 @@ class CorrelationResult:
     n_iter: int
     status: int
     message: str
+    scale_history: tuple = ()
 
     @property
     def chi(self) -> float:
@@ -363,6 +368,7 @@ def correlate(
     mode_iter: int = 4,
     min_gain: float = 0.01,
     noise_floor: float = 1.05,
+    scales=(1,),
     backend: str = "auto",
     callback: Optional[Callable[[dict], None]] = None,
 ) -> CorrelationResult:
@@ -414,6 +420,14 @@ def correlate(
         per fixed point; ``mode_iter`` re-projections per mode; stop when χ
         falls below ``noise_floor`` or a mode lowers χ by less than the
         fraction ``min_gain``.
+    scales : sequence of int
+        Multi-scale schedule, coarse to fine, e.g. ``(4, 2, 1)``: at scale
+        ``s`` the projections are Gaussian coarse-grained (σ = s/2 px, then
+        s x s block means, geometry scaled; :func:`coarse_grain`), the volume
+        is block-averaged (:func:`coarse_volume`) and γ² is carried over
+        (:func:`coarse_noise_factor`); the poses found start the next scale.
+        Large motions, which are small in coarse pixels, converge this way.
+        The returned geometry is always the full-resolution ``geom`` posed.
     callback : callable, optional
         Called with a dict (iteration, chi, snr, step_px, mu) after each
         iteration.
@@ -422,6 +436,24 @@ def correlate(
     -------
     CorrelationResult
     """
+    sched = _check_scales(scales)
+    if sched != (1,):
+        return _correlate_multiscale(
+            sched,
+            volume,
+            vol_geom,
+            projections,
+            geom,
+            dict(
+                basis=basis, method=method, frame=frame, center=center, fixed=fixed, angles=angles, times=times,
+                max_iter=max_iter, tol_px=tol_px, rcond=rcond, max_modes=max_modes, pgd_passes=pgd_passes,
+                mode_iter=mode_iter, min_gain=min_gain, noise_floor=noise_floor, backend=backend, callback=callback,
+            ),
+            weights,
+            noise_variance,
+            initial_rotvecs,
+            initial_translations,
+        )
     vol = np.asarray(volume, dtype=np.float32)
     s = np.asarray(projections, dtype=np.float32)
     if not isinstance(geom, VectorGeometry) or not isinstance(vol_geom, VolumeGeometry):
@@ -514,7 +546,50 @@ def correlate(
         n_iter=prob.n_pass,
         status=status,
         message=STATUS[status],
+        scale_history=((1, chi_hist[0], chi_hist[-1], prob.n_pass),),
     )
+
+
+def _check_scales(scales) -> tuple:
+    try:
+        sched = tuple(scales)
+    except TypeError:
+        sched = (scales,)
+    if not sched or any(not isinstance(x, (int, np.integer)) or isinstance(x, bool) or x < 1 for x in sched):
+        raise CorrelationError(f"scales must be a non-empty sequence of positive ints (coarse to fine), got {scales!r}")
+    return tuple(int(x) for x in sched)
+
+
+def _coarse_weights(weights, s: int, det_shape):
+    """Block means of pixel weights, cropped like :func:`coarse_grain`."""
+    if weights is None:
+        return None
+    w = np.asarray(weights, np.float32)
+    nr, nc = det_shape
+    w = w[..., : nr * s, : nc * s]
+    return w.reshape(w.shape[:-2] + (nr, s, nc, s)).mean(axis=(-3, -1))
+
+
+def _correlate_multiscale(sched, volume, vol_geom, projections, geom, options, weights, noise_variance, rv, t):
+    s_full = np.asarray(projections, dtype=np.float32)
+    if s_full.shape != (geom.n_views,) + geom.det_shape:
+        raise ShapeError(f"projections must have shape {(geom.n_views,) + geom.det_shape}, got {s_full.shape}")
+    gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(s_full)
+    history = []
+    res = None
+    for sc in sched:
+        if sc == 1:
+            data, g, vol, vg, w, gam = s_full, geom, volume, vol_geom, weights, gamma2
+        else:
+            data, g = coarse_grain(s_full, geom, sc)
+            vol, vg = coarse_volume(volume, vol_geom, sc)
+            w = _coarse_weights(weights, sc, g.det_shape)
+            gam = gamma2 * coarse_noise_factor(sc)
+        log.info("correlate: scale %d, detector %s, volume %s", sc, g.det_shape, vg.shape)
+        res = correlate(vol, vg, data, g, weights=w, noise_variance=gam, initial_rotvecs=rv, initial_translations=t, scales=(1,), **options)
+        history.append((sc, float(res.chi_history[0]), float(res.chi_history[-1]), int(res.n_iter)))
+        rv, t = res.rotvecs, res.translations
+    return replace(res, geometry=geom.apply_poses(rv, t), scale_history=tuple(history))
 
 
 def _overall_snr(red: ViewReduction) -> float:

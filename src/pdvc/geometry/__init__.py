@@ -2,7 +2,15 @@
 
 from ._compare import ReprojectionError, reprojection_error, sample_points
 from ._nominal import circular_cone, parallel
-from ._poses import compose_poses, invert_poses, matrix_to_rotvec, remove_mean_pose, rotvec_to_matrix
+from ._poses import (
+    compose_poses,
+    fix_gauge,
+    invert_poses,
+    magnification_mode,
+    matrix_to_rotvec,
+    remove_mean_pose,
+    rotvec_to_matrix,
+)
 from ._vector import VectorGeometry
 from ._volume import VolumeGeometry
 
@@ -16,6 +24,8 @@ __all__ = [
     "compose_poses",
     "invert_poses",
     "remove_mean_pose",
+    "fix_gauge",
+    "magnification_mode",
     "reprojection_error",
     "ReprojectionError",
     "sample_points",

@@ -73,3 +73,51 @@ def remove_mean_pose(rv, t, *, center=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.n
     new_R = R * Rbar.inv()
     new_t = t - np.einsum("kij,j->ki", Rk, g)
     return new_R.as_rotvec(), new_t
+
+
+def magnification_mode(geom, center) -> np.ndarray:
+    """Per-view translation of the cone-beam scale ambiguity, ``(n_views, 3)``.
+
+    Scaling the whole scene by ``1 + ε`` about the source of view k leaves
+    that view's projection unchanged.  About the volume centre ``c`` this is
+    a scaling of the volume (absorbed by the next reconstruction) plus a
+    translation ``ε (c − src_k)`` of the sample.  Hence, when the volume is
+    re-reconstructed, the per-view translations ``ε (c − src_k)`` (a constant
+    lab-frame shift along the beam for a circular scan, i.e. the source–object
+    distance) cannot be told from a change of voxel size.  Returns
+    ``c − src_k``; zeros for parallel beam, where no such ambiguity exists.
+    """
+    c = np.asarray(center, np.float64).reshape(3)
+    if geom.kind != "cone":
+        return np.zeros((geom.n_views, 3))
+    return c[None, :] - geom.src
+
+
+def fix_gauge(rv, t, geom, *, center, scale: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Fix the gauge of self-calibration poses (relative to the nominal ``geom``).
+
+    Two ambiguities are removed, as stated in every pdvc output:
+
+    * **rigid**: a global rigid motion of the reconstruction frame, fixed by
+      :func:`remove_mean_pose` (mean rotation = identity, mean position of
+      ``center`` unchanged);
+    * **scale** (cone beam, ``scale=True``): a common change of the
+      source–object distance, which the reconstruction absorbs as a change
+      of voxel size (see :func:`magnification_mode`).  Fixed by making the
+      poses' least-squares component along that mode zero, i.e. the nominal
+      source–object distance is the mean one: the voxel size stays the
+      nominal one.
+
+    Returns the re-gauged ``rv, t`` (new arrays).
+    """
+    c = np.asarray(center, np.float64).reshape(3)
+    rv, t = remove_mean_pose(rv, t, center=c)
+    if scale and geom.kind == "cone":
+        m = magnification_mode(geom, c)
+        for _ in range(2):
+            R = Rotation.from_rotvec(rv)
+            tau = R.apply(c) + t - c  # displacement of the centre
+            eps = float(np.sum(tau * m) / max(np.sum(m * m), 1e-300))
+            t = t - eps * m
+            rv, t = remove_mean_pose(rv, t, center=c)
+    return rv, t
