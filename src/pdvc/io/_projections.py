@@ -1,0 +1,854 @@
+"""Reading projection data: TIFF folders and stacks, HDF5 (Data Exchange, NXtomo), ``.npy``.
+
+Every reader returns one :class:`RawScan`: the projections as float32
+``(n_views, n_rows, n_cols)`` (``DESIGN.md`` §1), the flat and dark frames
+when there are any, the rotation angles in **radians** and a few facts about
+where it all came from. Nothing is normalised here; that is
+:func:`pdvc.io.normalize`'s job.
+
+Units of angles
+---------------
+Angles are in degrees wherever a person or a file format writes them and in
+radians in the returned object:
+
+* ``angles=`` given to :func:`read_projections` (array or text file, one
+  value per line) are **degrees**;
+* Data Exchange ``exchange/theta`` is in degrees (the spec, and the
+  ``units`` attribute written by dxchange); a ``units`` attribute that says
+  radians is honoured;
+* NeXus NXtomo ``sample/rotation_angle`` is an ``NX_ANGLE`` with a
+  ``units`` attribute; degrees when the attribute is missing.
+
+Flat positions
+--------------
+``RawScan.flat_positions`` says *when* each flat was taken, in view units
+on the acquisition time line: ``-0.5`` for a flat taken before the first
+projection, ``n_views - 0.5`` after the last one, ``k - 0.5`` between
+projections ``k - 1`` and ``k``. NXtomo files give it through the order of
+``image_key``; for other formats it is unknown (``None``) unless passed as
+``flat_positions=``.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputTypeError, PdvcError, ShapeError
+
+__all__ = [
+    "RawScan",
+    "read_projections",
+    "DataError",
+    "InputFileError",
+    "FormatError",
+]
+
+log = logging.getLogger("pdvc.io")
+
+_FORMATS = ("tiff-folder", "tiff", "dxchange", "nxtomo", "npy")
+_SCAN_FORMATS = _FORMATS + ("memory",)  # "memory": built in code, not read from a file
+_TIFF_EXTS = (".tif", ".tiff")
+_HDF5_EXTS = (".h5", ".hdf5", ".hdf", ".he5", ".nxs", ".nx", ".nx5", ".cxi")
+_GLOB_MAGIC = re.compile(r"[*?\[]")
+
+# NXtomo image_key values (NXtomo application definition).
+_KEY_PROJECTION, _KEY_FLAT, _KEY_DARK, _KEY_INVALID = 0, 1, 2, 3
+# ``image_key_control`` (ESRF nxtomo) also uses -1 for alignment frames.
+_KEY_ALIGNMENT = -1
+
+_DEGREE_UNITS = {"deg", "degree", "degrees", "°"}
+_RADIAN_UNITS = {"rad", "radian", "radians"}
+
+
+class DataError(PdvcError, ValueError):
+    """Data that cannot be used as read: NaN/Inf, non-positive flats, inconsistent counts."""
+
+
+class InputFileError(PdvcError, FileNotFoundError):
+    """An input file or folder that is missing or cannot be read."""
+
+
+class FormatError(PdvcError, ValueError):
+    """A file whose format is not supported or not recognised, or an option that does not apply to it."""
+
+
+# --------------------------------------------------------------------------- RawScan
+
+
+def _first_bad(arr: np.ndarray) -> tuple[int, int]:
+    """Number of non-finite values and the index (along axis 0) of the first one."""
+    bad = ~np.isfinite(arr)
+    n_bad = int(np.count_nonzero(bad))
+    first = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1))) if n_bad else -1
+    return n_bad, first
+
+
+def _check_frames(arr, name: str, det_shape: tuple[int, int], what: str) -> np.ndarray:
+    arr = np.asarray(arr, dtype=np.float32)
+    if arr.ndim != 3 or arr.shape[0] < 1 or tuple(arr.shape[1:]) != det_shape:
+        raise ShapeError(
+            f"{name} must have shape (n_{what}, {det_shape[0]}, {det_shape[1]}) with n_{what} >= 1 "
+            f"to match the detector of data, got {arr.shape}"
+        )
+    n_bad, first = _first_bad(arr)
+    if n_bad:
+        raise DataError(f"{name} must be finite; it holds {n_bad} NaN/Inf values, the first in frame {first}")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class RawScan:
+    """Projections as read from disk, before any normalisation.
+
+    Parameters
+    ----------
+    data : (n_views, n_rows, n_cols) float32 array
+        Projections: raw detector counts when ``is_raw``, else line
+        integrals. Finite.
+    flats : (n_flats, n_rows, n_cols) float32 array or None
+        Open-beam (flat-field, "white") frames, counts.
+    darks : (n_darks, n_rows, n_cols) float32 array or None
+        Dark frames (beam off), counts.
+    angles : (n_views,) float64 array or None
+        Rotation angle of each view, **radians**.
+    flat_positions : (n_flats,) float64 array or None
+        When each flat was taken, in view units on the acquisition time line
+        (``-0.5`` before the first view, ``n_views - 0.5`` after the last);
+        ``None`` when unknown.
+    is_raw : bool
+        True for counts (need :func:`pdvc.io.normalize`), False for data that
+        are already line integrals.
+    source : str
+        The path that was read (or a description for in-memory data).
+    format : str
+        One of ``"tiff-folder"``, ``"tiff"``, ``"dxchange"``, ``"nxtomo"``,
+        ``"npy"``, or ``"memory"`` for a scan built in code.
+    metadata : dict
+        What else was learnt while reading (file list, dtypes, units, ...).
+
+    Notes
+    -----
+    The arrays are converted to float32 / float64 without a copy when they
+    already have that type; nothing in pdvc writes to them. Use
+    :func:`dataclasses.replace` to change a field: the checks run again.
+    """
+
+    data: np.ndarray
+    flats: np.ndarray | None = None
+    darks: np.ndarray | None = None
+    angles: np.ndarray | None = None
+    flat_positions: np.ndarray | None = None
+    is_raw: bool = True
+    source: str = "<memory>"
+    format: str = "memory"
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        data = np.asarray(self.data)
+        if not np.issubdtype(data.dtype, np.number) or np.issubdtype(data.dtype, np.complexfloating):
+            raise InputTypeError(f"data must be a real numeric array, got dtype {data.dtype}")
+        data = data.astype(np.float32, copy=False)
+        if data.ndim != 3 or min(data.shape) < 1:
+            raise ShapeError(
+                f"data must have shape (n_views, n_rows, n_cols) with every size >= 1, got {data.shape}"
+            )
+        n_bad, first = _first_bad(data)
+        if n_bad:
+            raise DataError(f"data must be finite; it holds {n_bad} NaN/Inf values, the first in view {first}")
+        det_shape = (int(data.shape[1]), int(data.shape[2]))
+        object.__setattr__(self, "data", data)
+        if self.flats is not None:
+            object.__setattr__(self, "flats", _check_frames(self.flats, "flats", det_shape, "flats"))
+        if self.darks is not None:
+            object.__setattr__(self, "darks", _check_frames(self.darks, "darks", det_shape, "darks"))
+        if self.angles is not None:
+            ang = np.asarray(self.angles, dtype=np.float64)
+            if ang.shape != (data.shape[0],):
+                raise ShapeError(
+                    f"angles must have shape (n_views,) = ({data.shape[0]},), one per view of data, got {ang.shape}"
+                )
+            if not np.all(np.isfinite(ang)):
+                raise DataError(f"angles must be finite; {int(np.sum(~np.isfinite(ang)))} are NaN/Inf")
+            object.__setattr__(self, "angles", ang)
+        if self.flat_positions is not None:
+            if self.flats is None:
+                raise ShapeError("flat_positions were given but there are no flats")
+            pos = np.asarray(self.flat_positions, dtype=np.float64)
+            if pos.shape != (self.flats.shape[0],):
+                raise ShapeError(
+                    f"flat_positions must have shape (n_flats,) = ({self.flats.shape[0]},), "
+                    f"one per flat, got {pos.shape}"
+                )
+            if not np.all(np.isfinite(pos)):
+                raise DataError("flat_positions must be finite")
+            object.__setattr__(self, "flat_positions", pos)
+        if not isinstance(self.is_raw, (bool, np.bool_)):
+            raise InputTypeError(f"is_raw must be a bool, got {self.is_raw!r}")
+        object.__setattr__(self, "is_raw", bool(self.is_raw))
+        if self.format not in _SCAN_FORMATS:
+            raise FormatError(f"format must be one of {_SCAN_FORMATS}, got {self.format!r}")
+
+    @property
+    def n_views(self) -> int:
+        """Number of projections."""
+        return int(self.data.shape[0])
+
+    @property
+    def det_shape(self) -> tuple[int, int]:
+        """Detector shape ``(n_rows, n_cols)``."""
+        return int(self.data.shape[1]), int(self.data.shape[2])
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def _natural_key(path: Path):
+    """Sort key that orders ``proj_2`` before ``proj_10`` (digits compare as numbers)."""
+    parts = re.split(r"(\d+)", path.name)
+    return [int(p) if i % 2 else p.lower() for i, p in enumerate(parts)]
+
+
+def _decode(value) -> str:
+    """An HDF5 string (bytes, str, 0-d or 1-element array) as ``str``."""
+    if isinstance(value, np.ndarray):
+        value = value.reshape(-1)[0] if value.size else ""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    return str(value)
+
+
+def _nx_class(obj) -> str:
+    return _decode(obj.attrs.get("NX_class", ""))
+
+
+def _angles_to_radians(values: np.ndarray, units: str | None, name: str) -> tuple[np.ndarray, str]:
+    """Convert angles to radians given a units string (``None`` = degrees)."""
+    u = (units or "").strip().lower()
+    if u in ("",) or u in _DEGREE_UNITS:
+        return np.deg2rad(values), "degrees" if u else "degrees (no units attribute)"
+    if u in _RADIAN_UNITS:
+        return np.asarray(values, np.float64), "radians"
+    raise DataError(f"{name} has units {units!r}; expected degrees or radians")
+
+
+def _check_path_exists(path: Path, name: str) -> None:
+    if not path.exists():
+        raise InputFileError(f"{name} path {str(path)!r} does not exist")
+
+
+def _read_tiff_file(path: Path, name: str) -> np.ndarray:
+    """One TIFF file as an array: its first series, or all its 2D series stacked."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            series = tf.series
+            if len(series) > 1:
+                shapes = {tuple(s.shape) for s in series}
+                if len(shapes) == 1 and len(next(iter(shapes))) == 2:
+                    return np.stack([s.asarray() for s in series])
+                raise ShapeError(
+                    f"{name} file {str(path)!r} holds {len(series)} image series of shapes "
+                    f"{sorted(shapes)}; expected one stack or 2D pages of one shape"
+                )
+            return series[0].asarray()
+    except PdvcError:
+        raise
+    except Exception as exc:  # tifffile raises several types for damaged files
+        raise InputFileError(f"{name} file {str(path)!r} could not be read as TIFF: {exc}") from exc
+
+
+def _list_tiffs(folder: Path, pattern: str | None, name: str) -> list[Path]:
+    if pattern is None:
+        files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _TIFF_EXTS]
+        where = f"folder {str(folder)!r}"
+    else:
+        files = [Path(p) for p in glob.glob(str(folder / pattern)) if Path(p).is_file()]
+        where = f"pattern {str(folder / pattern)!r}"
+    if not files:
+        raise InputFileError(f"{name}: no TIFF files (*.tif, *.tiff) found in {where}")
+    return sorted(files, key=_natural_key)
+
+
+def _read_tiff_folder(folder: Path, pattern: str | None, name: str) -> tuple[np.ndarray, list[Path], np.dtype]:
+    """Every TIFF of a folder (natural order) stacked (float32) along a new first axis, and the files' dtype."""
+    files = _list_tiffs(folder, pattern, name)
+    first = _read_tiff_file(files[0], name)
+    if first.ndim != 2:
+        raise ShapeError(
+            f"{name}: each file of a TIFF folder must hold one 2D image, but {files[0].name!r} "
+            f"has shape {first.shape}; pass the file path itself to read a multi-page stack"
+        )
+    out = np.empty((len(files),) + first.shape, dtype=np.float32)
+    out[0] = first
+    for k, f in enumerate(files[1:], start=1):
+        img = _read_tiff_file(f, name)
+        if img.shape != first.shape:
+            raise ShapeError(
+                f"{name}: every image of a TIFF folder must have the shape of the first "
+                f"({files[0].name!r}: {first.shape}); {f.name!r} has shape {img.shape}"
+            )
+        out[k] = img
+    return out, files, first.dtype
+
+
+def _read_npy(path: Path, name: str) -> np.ndarray:
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except Exception as exc:
+        raise InputFileError(f"{name} file {str(path)!r} could not be read as .npy: {exc}") from exc
+
+
+def _split_glob(path_str: str) -> tuple[Path, str | None]:
+    """``"dir/proj_*.tif"`` -> (``dir``, ``"proj_*.tif"``); no glob characters -> (path, None)."""
+    if _GLOB_MAGIC.search(path_str):
+        p = Path(path_str)
+        if _GLOB_MAGIC.search(str(p.parent)):
+            raise FormatError(f"only the file name may hold glob characters, got {path_str!r}")
+        return p.parent, p.name
+    return Path(path_str), None
+
+
+def _read_array_file(value, name: str) -> tuple[np.ndarray, str]:
+    """A flats/darks (or data) file or folder as a raw array, with a description of the source."""
+    folder, pattern = _split_glob(os.fspath(value))
+    if pattern is not None:
+        _check_path_exists(folder, name)
+        arr, files, _ = _read_tiff_folder(folder, pattern, name)
+        return arr, f"{len(files)} TIFF files {str(folder / pattern)!r}"
+    path = folder
+    _check_path_exists(path, name)
+    if path.is_dir():
+        arr, files, _ = _read_tiff_folder(path, None, name)
+        return arr, f"{len(files)} TIFF files in {str(path)!r}"
+    ext = path.suffix.lower()
+    if ext in _TIFF_EXTS:
+        return _read_tiff_file(path, name), str(path)
+    if ext == ".npy":
+        return _read_npy(path, name), str(path)
+    raise FormatError(
+        f"{name} file {str(path)!r} must be a TIFF (.tif, .tiff), a folder of TIFFs or a .npy file, "
+        f"got extension {ext or '(none)'!r}; load other files yourself and pass an array"
+    )
+
+
+def _frames_from(value, name: str, det_shape: tuple[int, int]) -> tuple[np.ndarray | None, str | None]:
+    """User flats/darks (path or array) as a float32 ``(n, n_rows, n_cols)`` copy."""
+    if value is None:
+        return None, None
+    if isinstance(value, (str, os.PathLike)):
+        arr, desc = _read_array_file(value, name)
+    else:
+        arr, desc = np.asarray(value), "array"
+        if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+            raise InputTypeError(f"{name} must be a path or a real numeric array, got {type(value).__name__}")
+    r, c = det_shape
+    if arr.ndim == 2:
+        if arr.shape == det_shape:
+            arr = arr[None]
+        elif r == 1 and arr.shape[1] == c:
+            arr = arr[:, None, :]
+    if arr.ndim != 3 or tuple(arr.shape[1:]) != det_shape or arr.shape[0] < 1:
+        extra = f" or (n_{name}, {c}) for a one-row detector" if r == 1 else ""
+        raise ShapeError(
+            f"{name} must have shape (n_{name}, {r}, {c}) or ({r}, {c}){extra} to match the detector "
+            f"of data, got {arr.shape}"
+        )
+    return np.array(arr, dtype=np.float32, copy=True), desc
+
+
+def _angles_from(value, n_views: int) -> tuple[np.ndarray | None, str | None]:
+    """User angles in **degrees** (array or text file, one per line) as radians."""
+    if value is None:
+        return None, None
+    if isinstance(value, (str, os.PathLike)):
+        path = Path(value)
+        _check_path_exists(path, "angles")
+        try:
+            deg = np.loadtxt(path, dtype=np.float64, ndmin=1)
+        except Exception as exc:
+            raise InputFileError(
+                f"angles file {str(path)!r} could not be read as numbers, one angle in degrees per line: {exc}"
+            ) from exc
+        desc = f"file {str(path)!r} (degrees)"
+    else:
+        try:
+            deg = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputTypeError(f"angles must be a path or an array of numbers (degrees), got {value!r}") from exc
+        desc = "array (degrees)"
+    if deg.ndim != 1:
+        raise ShapeError(f"angles must be one value per view, shape ({n_views},), in degrees; got shape {deg.shape}")
+    if deg.shape[0] != n_views:
+        raise ShapeError(f"angles must hold one value per view: expected {n_views} angles, got {deg.shape[0]}")
+    if not np.all(np.isfinite(deg)):
+        raise DataError(f"angles must be finite; {int(np.sum(~np.isfinite(deg)))} of {n_views} are NaN/Inf")
+    return np.deg2rad(deg), desc
+
+
+def _shape_data(arr: np.ndarray, *, sinogram: bool, allow_single_2d: bool, source: str) -> np.ndarray:
+    """Raw array -> ``(n_views, n_rows, n_cols)``, following ``sinogram``."""
+    if arr.ndim == 3:
+        return arr.transpose(1, 0, 2) if sinogram else arr
+    if arr.ndim == 2:
+        if sinogram:
+            return arr[:, None, :]
+        if allow_single_2d:
+            return arr[None]
+        raise ShapeError(
+            f"data from {source} must be 3D (n_views, n_rows, n_cols), or 2D (n_views, n_cols) with "
+            f"sinogram=True; got 2D shape {arr.shape}"
+        )
+    hint = "2D (n_views, n_cols)" if sinogram else "3D (n_views, n_rows, n_cols)"
+    raise ShapeError(f"data from {source} must be {hint}, got {arr.ndim}D shape {arr.shape}")
+
+
+# --------------------------------------------------------------------------- HDF5
+
+
+def _find_nxtomo(h5) -> list[str]:
+    """Paths of the NXtomo entries of a file (root children and one level below)."""
+    found = []
+
+    def is_tomo(g) -> bool:
+        if _nx_class(g) == "NXtomo":
+            return True
+        if _nx_class(g) in ("NXentry", "NXsubentry", "") and "definition" in g:
+            try:
+                return _decode(g["definition"][()]).strip() == "NXtomo"
+            except Exception:
+                return False
+        return False
+
+    import h5py
+
+    for name, obj in h5.items():
+        if isinstance(obj, h5py.Group):
+            if is_tomo(obj):
+                found.append(obj.name)
+                continue
+            for sub in obj.values():
+                if isinstance(sub, h5py.Group) and is_tomo(sub):
+                    found.append(sub.name)
+    return found
+
+
+def _nx_get(group, candidates):
+    """The first existing member among ``candidates`` (paths relative to ``group``), or None."""
+    for c in candidates:
+        if c in group:
+            return group[c], c
+    return None, None
+
+
+def _read_nxtomo(h5, entry_path: str, path: Path) -> dict:
+    import h5py
+
+    entry = h5[entry_path]
+    det_paths = ["instrument/detector"]
+    if "instrument" in entry:
+        det_paths += [
+            f"instrument/{k}"
+            for k, v in entry["instrument"].items()
+            if isinstance(v, h5py.Group) and _nx_class(v) == "NXdetector" and k != "detector"
+        ]
+    data_ds, data_at = _nx_get(entry, [f"{d}/data" for d in det_paths] + ["data/data"])
+    if data_ds is None or not isinstance(data_ds, h5py.Dataset):
+        raise FormatError(
+            f"NXtomo entry {entry_path!r} of {str(path)!r} has no frames: expected instrument/detector/data "
+            f"or data/data"
+        )
+    frames = np.asarray(data_ds[()])
+    if frames.ndim != 3:
+        raise ShapeError(
+            f"NXtomo {entry_path}/{data_at} must be 3D (n_frames, n_rows, n_cols), got shape {frames.shape}"
+        )
+    n_frames = frames.shape[0]
+    key_ds, key_at = _nx_get(
+        entry,
+        [f"{d}/image_key" for d in det_paths]
+        + ["data/image_key"]
+        + [f"{d}/image_key_control" for d in det_paths],
+    )
+    meta: dict = {"hdf5_entry": entry_path, "hdf5_data": f"{entry_path}/{data_at}", "raw_dtype": str(frames.dtype)}
+    if key_ds is None:
+        log.warning("NXtomo %s: no image_key; every one of the %d frames is taken as a projection", path, n_frames)
+        keys = np.zeros(n_frames, dtype=np.int64)
+        meta["image_key"] = "absent (all frames projections)"
+    else:
+        keys = np.asarray(key_ds[()]).astype(np.int64).reshape(-1)
+        meta["image_key"] = f"{entry_path}/{key_at}"
+        if keys.shape[0] != n_frames:
+            raise ShapeError(
+                f"NXtomo {entry_path}/{key_at} must hold one key per frame: expected {n_frames}, got {keys.shape[0]}"
+            )
+        allowed = {_KEY_PROJECTION, _KEY_FLAT, _KEY_DARK, _KEY_INVALID, _KEY_ALIGNMENT}
+        unknown = sorted(set(np.unique(keys).tolist()) - allowed)
+        if unknown:
+            raise DataError(
+                f"NXtomo {entry_path}/{key_at} must hold 0 (projection), 1 (flat), 2 (dark) or 3 (invalid), "
+                f"got also {unknown}"
+            )
+    proj = keys == _KEY_PROJECTION
+    flat = keys == _KEY_FLAT
+    dark = keys == _KEY_DARK
+    meta["n_invalid_frames"] = int(np.sum(keys == _KEY_INVALID))
+    meta["n_alignment_frames"] = int(np.sum(keys == _KEY_ALIGNMENT))
+    if not np.any(proj):
+        raise DataError(f"NXtomo entry {entry_path!r} of {str(path)!r} has no projection frames (image_key 0)")
+    # position of each flat on the time line, in view units: -0.5 before the first projection, ...
+    n_before = np.cumsum(proj) - proj  # projections acquired before each frame
+    flat_positions = n_before[flat].astype(np.float64) - 0.5 if np.any(flat) else None
+
+    angles = None
+    ang_ds, ang_at = _nx_get(entry, ["sample/rotation_angle", "data/rotation_angle"])
+    if ang_ds is not None:
+        values = np.asarray(ang_ds[()], dtype=np.float64).reshape(-1)
+        if values.shape[0] != n_frames:
+            raise ShapeError(
+                f"NXtomo {entry_path}/{ang_at} must hold one angle per frame: expected {n_frames}, "
+                f"got {values.shape[0]}"
+            )
+        units = _decode(ang_ds.attrs["units"]) if "units" in ang_ds.attrs else None
+        angles, units_read = _angles_to_radians(values[proj], units, f"NXtomo {entry_path}/{ang_at}")
+        meta["angle_units"] = units_read
+    return {
+        "data": frames[proj],
+        "flats": frames[flat] if np.any(flat) else None,
+        "darks": frames[dark] if np.any(dark) else None,
+        "angles": angles,
+        "flat_positions": flat_positions,
+        "counts": True if np.any(flat) else None,
+        "metadata": meta,
+    }
+
+
+def _read_dxchange(h5, path: Path, dataset: str | None) -> dict:
+    import h5py
+
+    if dataset is None:
+        group_path, data_name = "exchange", "data"
+    elif isinstance(h5.get(dataset), h5py.Dataset):
+        group_path, data_name = h5[dataset].parent.name, dataset.rsplit("/", 1)[-1]
+    else:
+        group_path, data_name = dataset, "data"
+    if group_path not in h5 or data_name not in h5[group_path]:
+        raise FormatError(
+            f"{str(path)!r} has no Data Exchange projections {group_path.strip('/')}/{data_name}; "
+            f"pass dataset= with the HDF5 path of the projections"
+        )
+    grp = h5[group_path]
+    ds = grp[data_name]
+    frames = np.asarray(ds[()])
+    meta: dict = {"hdf5_data": ds.name, "raw_dtype": str(frames.dtype)}
+    units = _decode(ds.attrs["units"]).strip().lower() if "units" in ds.attrs else ""
+    if units:
+        meta["data_units"] = units
+    flats = np.asarray(grp["data_white"][()]) if "data_white" in grp else None
+    darks = np.asarray(grp["data_dark"][()]) if "data_dark" in grp else None
+    angles = None
+    if "theta" in grp:
+        th = grp["theta"]
+        t_units = _decode(th.attrs["units"]) if "units" in th.attrs else None
+        angles, meta["angle_units"] = _angles_to_radians(
+            np.asarray(th[()], dtype=np.float64).reshape(-1), t_units, f"{grp.name}/theta"
+        )
+    for extra in ("theta_white", "theta_dark"):
+        if extra in grp:  # kept for the record; not turned into flat_positions (see module notes)
+            meta[extra] = np.asarray(grp[extra][()]).tolist()
+    counts = True if (units == "counts" or flats is not None) else None
+    return {
+        "data": frames,
+        "flats": flats,
+        "darks": darks,
+        "angles": angles,
+        "flat_positions": None,
+        "counts": counts,
+        "metadata": meta,
+    }
+
+
+def _read_hdf5(path: Path, fmt: str, dataset: str | None) -> tuple[dict, str]:
+    import h5py
+
+    try:
+        h5 = h5py.File(path, "r")
+    except Exception as exc:
+        raise InputFileError(f"path {str(path)!r} could not be opened as HDF5: {exc}") from exc
+    with h5:
+        entries = _find_nxtomo(h5)
+        if dataset is not None:
+            obj = h5.get(dataset)
+            if obj is None:
+                raise FormatError(
+                    f"dataset {dataset!r} is not in {str(path)!r}; top-level members are {sorted(h5.keys())}"
+                )
+            if fmt == "nxtomo" or (fmt == "auto" and isinstance(obj, h5py.Group) and obj.name in entries):
+                if not isinstance(obj, h5py.Group):
+                    raise FormatError(f"dataset must name the NXtomo entry group with fmt='nxtomo', got {dataset!r}")
+                return _read_nxtomo(h5, obj.name, path), "nxtomo"
+            return _read_dxchange(h5, path, dataset), "dxchange"
+        if fmt in ("auto", "nxtomo"):
+            if len(entries) > 1:
+                raise FormatError(
+                    f"{str(path)!r} holds {len(entries)} NXtomo entries {entries}; choose one with dataset="
+                )
+            if len(entries) == 1:
+                return _read_nxtomo(h5, entries[0], path), "nxtomo"
+            if fmt == "nxtomo":
+                raise FormatError(
+                    f"{str(path)!r} has no NXtomo entry (an NXentry whose definition is 'NXtomo'); "
+                    f"pass dataset= with the entry path"
+                )
+        if fmt == "dxchange" or "exchange" in h5:
+            return _read_dxchange(h5, path, None), "dxchange"
+        raise FormatError(
+            f"{str(path)!r} is HDF5 but neither Data Exchange (exchange/data) nor NeXus NXtomo; "
+            f"top-level members are {sorted(h5.keys())}; pass dataset= with the path of the projections"
+        )
+
+
+# --------------------------------------------------------------------------- public
+
+
+def _detect_format(path_str: str) -> str:
+    folder, pattern = _split_glob(path_str)
+    if pattern is not None:
+        return "tiff-folder"
+    path = folder
+    _check_path_exists(path, "path")
+    if path.is_dir():
+        return "tiff-folder"
+    ext = path.suffix.lower()
+    if ext in _TIFF_EXTS:
+        return "tiff"
+    if ext == ".npy":
+        return "npy"
+    import h5py
+
+    if ext in _HDF5_EXTS or h5py.is_hdf5(path):
+        return "hdf5"
+    raise FormatError(
+        f"path {str(path)!r} is not a supported projection format: expected a folder of TIFFs, a .tif/.tiff "
+        f"file, a .npy file or HDF5 (Data Exchange or NXtomo); got extension {ext or '(none)'!r}"
+    )
+
+
+def read_projections(
+    path,
+    *,
+    fmt: str = "auto",
+    flats=None,
+    darks=None,
+    angles=None,
+    sinogram: bool = False,
+    is_raw: bool | None = None,
+    dataset: str | None = None,
+    flat_positions=None,
+) -> RawScan:
+    """Read projections (and flats, darks, angles) from a folder or a file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        * a folder: every ``*.tif``/``*.tiff`` in it, in natural order
+          (``proj_2`` before ``proj_10``), one 2D image per file;
+        * a glob such as ``"scan/proj_*.tif"``: the matching files, natural order;
+        * a ``.tif``/``.tiff`` file: a multi-page stack, or one 2D image (one view);
+        * a ``.npy`` file: a 3D array (or 2D with ``sinogram=True``);
+        * an HDF5 file: NeXus NXtomo (frames split by ``image_key``) or Data
+          Exchange (``exchange/data``, ``data_white``, ``data_dark``, ``theta``).
+    fmt : {"auto", "tiff-folder", "tiff", "dxchange", "nxtomo", "npy"}
+        ``"auto"`` decides from the path: folder or glob, extension, then the
+        contents of an HDF5 file (NXtomo entry first, then ``exchange``).
+    flats, darks : str, os.PathLike or array, optional
+        Flat (open beam) and dark frames, counts: ``(n, n_rows, n_cols)`` or
+        one ``(n_rows, n_cols)`` image (for a one-row detector also
+        ``(n, n_cols)``); a path is read as TIFF, TIFF folder/glob or
+        ``.npy``. They replace the frames found in an HDF5 file.
+    angles : str, os.PathLike or array of float, optional
+        Rotation angles in **degrees**, one per view: an array or a text file
+        with one value per line. They replace the angles found in the file.
+        Returned in radians.
+    sinogram : bool
+        The array is sinogram-major: 2D ``(n_views, n_cols)`` becomes
+        ``(n_views, 1, n_cols)``, 3D ``(n_rows, n_views, n_cols)`` becomes
+        ``(n_views, n_rows, n_cols)``. TIFF and ``.npy`` only; flats and darks
+        are always given view-major.
+    is_raw : bool, optional
+        True if the values are counts, False if already line integrals.
+        Default: inferred (counts when the file has flats, the values are
+        integers, or Data Exchange says ``units="counts"``; else line
+        integrals) and logged; the reason is in ``metadata["is_raw_reason"]``.
+    dataset : str, optional
+        HDF5 only: the NXtomo entry group (when a file holds several), or the
+        Data Exchange group / projection dataset path (e.g.
+        ``"exchange_1/data"``; its siblings ``data_white``, ``data_dark``,
+        ``theta`` are read too).
+    flat_positions : array of float, optional
+        When each flat was taken, in view units (``-0.5`` before the first
+        view, ``n_views - 0.5`` after the last); lets
+        :func:`pdvc.io.normalize` interpolate between flats taken before and
+        after. Overrides positions from an NXtomo ``image_key``.
+
+    Returns
+    -------
+    RawScan
+        ``data`` float32 ``(n_views, n_rows, n_cols)``; angles in radians.
+
+    Raises
+    ------
+    InputFileError
+        A missing or unreadable file (also a ``FileNotFoundError``).
+    FormatError
+        An unsupported or unrecognised format, or an option that does not apply.
+    ShapeError
+        Wrong dimensions; flats/darks that do not match the detector; a
+        number of angles that is not the number of views.
+    DataError
+        NaN/Inf in the data (the message gives the count and the first view).
+
+    Examples
+    --------
+    >>> raw = read_projections("scan/", flats="flats/", darks="darks/",
+    ...                        angles=np.arange(360) * 0.5)    # doctest: +SKIP
+    >>> p, report = normalize(raw)                              # doctest: +SKIP
+    """
+    if fmt != "auto" and fmt not in _FORMATS:
+        raise FormatError(f"fmt must be 'auto' or one of {_FORMATS}, got {fmt!r}")
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputTypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    if not isinstance(sinogram, (bool, np.bool_)):
+        raise InputTypeError(f"sinogram must be a bool, got {sinogram!r}")
+    if is_raw is not None and not isinstance(is_raw, (bool, np.bool_)):
+        raise InputTypeError(f"is_raw must be None or a bool, got {is_raw!r}")
+    path_str = os.fspath(path)
+    detected = _detect_format(path_str) if fmt == "auto" else fmt
+    if fmt in ("dxchange", "nxtomo"):
+        _check_path_exists(Path(path_str), "path")
+    if dataset is not None and detected not in ("hdf5", "dxchange", "nxtomo"):
+        raise FormatError(f"dataset applies to HDF5 files only, but {path_str!r} is read as {detected!r}")
+    if sinogram and detected in ("hdf5", "dxchange", "nxtomo"):
+        raise FormatError("sinogram=True applies to TIFF and .npy inputs only, not to HDF5 files")
+
+    parts: dict = {"flats": None, "darks": None, "angles": None, "flat_positions": None, "counts": None}
+    meta: dict = {}
+    if detected in ("hdf5", "dxchange", "nxtomo"):
+        hparts, out_fmt = _read_hdf5(Path(path_str), "auto" if detected == "hdf5" else detected, dataset)
+        parts.update(hparts)
+        meta.update(hparts["metadata"])
+        raw_arr = parts["data"]
+        if raw_arr.ndim != 3:
+            raise ShapeError(f"data in {path_str!r} must be 3D (n_views, n_rows, n_cols), got shape {raw_arr.shape}")
+    elif detected == "tiff-folder":
+        folder, pattern = _split_glob(path_str)
+        _check_path_exists(folder, "path")
+        if not folder.is_dir():
+            raise FormatError(f"fmt='tiff-folder' needs a folder or a glob, got the file {path_str!r}")
+        raw_arr, files, file_dtype = _read_tiff_folder(folder, pattern, "path")
+        meta.update(n_files=len(files), first_file=files[0].name, last_file=files[-1].name)
+        meta["raw_dtype"] = str(file_dtype)
+        # a folder of 2D images: each file is one view, or one sinogram (row) with sinogram=True
+        raw_arr = _shape_data(raw_arr, sinogram=sinogram, allow_single_2d=False, source=path_str)
+        out_fmt = "tiff-folder"
+    elif detected == "tiff":
+        p = Path(path_str)
+        _check_path_exists(p, "path")
+        raw_arr = _read_tiff_file(p, "path")
+        meta["raw_dtype"] = str(raw_arr.dtype)
+        raw_arr = _shape_data(raw_arr, sinogram=sinogram, allow_single_2d=True, source=path_str)
+        out_fmt = "tiff"
+    else:  # npy
+        p = Path(path_str)
+        _check_path_exists(p, "path")
+        raw_arr = _read_npy(p, "path")
+        meta["raw_dtype"] = str(raw_arr.dtype)
+        raw_arr = _shape_data(raw_arr, sinogram=sinogram, allow_single_2d=False, source=path_str)
+        out_fmt = "npy"
+    meta.setdefault("raw_dtype", str(raw_arr.dtype))
+    integer_input = np.issubdtype(np.dtype(meta["raw_dtype"]), np.integer)
+    data = np.array(raw_arr, dtype=np.float32, copy=True)
+    det_shape = (int(data.shape[1]), int(data.shape[2]))
+    n_views = int(data.shape[0])
+
+    fl, fl_desc = _frames_from(flats, "flats", det_shape)
+    if fl is None and parts["flats"] is not None:
+        fl, fl_desc = _frames_from(parts["flats"], "flats", det_shape)
+        fl_desc = "file"
+        positions = parts["flat_positions"]
+    else:
+        if fl is not None and parts["flats"] is not None:
+            log.info("flats given by the caller replace the %d flats of %s", len(parts["flats"]), path_str)
+        positions = None
+    dk, dk_desc = _frames_from(darks, "darks", det_shape)
+    if dk is None and parts["darks"] is not None:
+        dk, dk_desc = _frames_from(parts["darks"], "darks", det_shape)
+        dk_desc = "file"
+    elif dk is not None and parts["darks"] is not None:
+        log.info("darks given by the caller replace the %d darks of %s", len(parts["darks"]), path_str)
+
+    ang, ang_desc = _angles_from(angles, n_views)
+    if ang is None and parts["angles"] is not None:
+        ang = parts["angles"]
+        ang_desc = f"file ({meta.get('angle_units', 'degrees')})"
+        if ang.shape != (n_views,):
+            raise ShapeError(
+                f"angles in {path_str!r} must hold one value per view: expected {n_views}, got {ang.shape[0]}"
+            )
+    if flat_positions is not None:
+        if fl is None:
+            raise ShapeError("flat_positions were given but there are no flats; pass flats= too")
+        positions = np.asarray(flat_positions, dtype=np.float64)
+        if positions.shape != (fl.shape[0],):
+            raise ShapeError(
+                f"flat_positions must hold one value per flat: expected shape ({fl.shape[0]},), got {positions.shape}"
+            )
+
+    if is_raw is None:
+        if fl is not None:
+            is_raw, reason = True, "flats present"
+        elif parts["counts"]:
+            is_raw, reason = True, "file says counts"
+        elif integer_input:
+            is_raw, reason = True, f"integer data ({meta['raw_dtype']})"
+        else:
+            is_raw, reason = False, "float data without flats: taken as line integrals"
+        log.info("is_raw inferred as %s (%s); pass is_raw= to override", is_raw, reason)
+    else:
+        reason = "given"
+    meta["is_raw_reason"] = reason
+    meta["angles_source"] = ang_desc
+    meta["flats_source"] = fl_desc
+    meta["darks_source"] = dk_desc
+
+    scan = RawScan(
+        data=data,
+        flats=fl,
+        darks=dk,
+        angles=ang,
+        flat_positions=positions,
+        is_raw=bool(is_raw),
+        source=path_str,
+        format=out_fmt,
+        metadata=meta,
+    )
+    log.info(
+        "read %s (%s): %d views of %d x %d, %s, %s flats, %s darks, angles %s",
+        path_str,
+        out_fmt,
+        n_views,
+        det_shape[0],
+        det_shape[1],
+        "counts" if scan.is_raw else "line integrals",
+        0 if fl is None else fl.shape[0],
+        0 if dk is None else dk.shape[0],
+        ang_desc or "none",
+    )
+    return scan
