@@ -10,10 +10,34 @@ from ._atomic import (
     atomic_write_text,
     prepare_output_dir,
 )
+from ._config import (
+    AngleRange,
+    CalibrationConfig,
+    Config,
+    ConfigError,
+    DataConfig,
+    GeometryConfig,
+    OutputConfig,
+    PreprocessConfig,
+    VolumeConfig,
+    build_geometry,
+    build_volume_geometry,
+    check_coverage,
+    load_config,
+    resolve_angles,
+    write_config,
+)
+from ._export import astra_volume_geometry, export_astra, export_cil, export_leap, export_tigre, tigre_to_geometry, write_exports
 from ._preprocess import PreprocessReport, beam_hardening, detector_roi, flats_from_columns, normalize
 from ._projections import DataError, FormatError, InputFileError, RawScan, read_projections
+from ._vendor import VendorGeometry, read_nikon, read_skyscan, read_vendor_geometry
 
 __all__ = [
+    "Config", "ConfigError", "DataConfig", "GeometryConfig", "AngleRange", "VolumeConfig",
+    "PreprocessConfig", "CalibrationConfig", "OutputConfig", "load_config", "write_config",
+    "build_geometry", "build_volume_geometry", "resolve_angles", "check_coverage",
+    "VendorGeometry", "read_nikon", "read_skyscan", "read_vendor_geometry",
+    "export_astra", "astra_volume_geometry", "export_tigre", "tigre_to_geometry", "export_leap", "export_cil", "write_exports",
     "RawScan",
     "read_projections",
     "DataError",

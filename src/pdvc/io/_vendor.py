@@ -405,7 +405,7 @@ def _read_ang(path: Path) -> np.ndarray:
     if sorted(labels.tolist()) != list(range(first, first + n)):
         raise GeometryError(f"Nikon angle file {str(path)!r}: projection labels are not 0..N-1 or 1..N")
     out = np.empty(n)
-    out[(n - first) - labels] = angles  # label p (of 1..N) -> image N - p
+    out[(n - 1 + first) - labels] = angles  # label p of 1..N -> image N - p (0..N-1: N-1-p)
     return out
 
 

@@ -1,0 +1,398 @@
+"""Coarse initialisation: the centre-of-rotation offset from opposite views.
+
+The P-DVC engine linearises the projections about the current geometry, so
+it converges from a fraction of the size of the sample's features, not from
+the tens of pixels by which the rotation axis of a lab scanner may be off
+its nominal column. The paper's suggestion (Jailin et al. 2018, §4) is to
+start from a cross-correlation; here the classic one of opposite views:
+
+in parallel beam, the view at ``θ + π`` is the mirror image of the view at
+``θ`` about the projected rotation axis. If the axis projects to column
+``c_ax``, the horizontally mirrored partner ``b'(j) = p_{θ+π}(n_cols - 1 - j)``
+is the view ``p_θ`` shifted by twice the offset,
+``b'(j) = p_θ(j + 2 (c_ax - (n_cols - 1)/2))``, which a cross-correlation
+finds to a small fraction of a pixel.
+
+Offset convention (shared with :class:`pdvc.calibration.MotionSummary`):
+``offset_px = c_ax - (n_cols - 1)/2``, positive toward larger column
+indices (the detector's ``u``, the lab ``+x``). It corresponds to a
+constant lab translation of the sample by ``offset_px · |u| / M`` along
+lab ``x`` (``M`` the magnification of the nominal axis, 1 in parallel
+beam), which :func:`offset_poses` writes as per-view sample-frame poses.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..correlation import lab_frames
+from ..errors import InputTypeError, PdvcError, ShapeError
+from ..geometry import VectorGeometry
+
+__all__ = ["InitError", "AxisOffsetEstimate", "estimate_axis_offset", "offset_poses"]
+
+log = logging.getLogger(__name__)
+
+_MAD_TO_SIGMA = 1.4826
+
+
+class InitError(PdvcError, ValueError):
+    """The coarse initialisation found no usable data or no reliable estimate."""
+
+
+@dataclass(frozen=True, eq=False)
+class AxisOffsetEstimate:
+    """Centre-of-rotation offset found by correlating opposite views.
+
+    Attributes
+    ----------
+    offset_px : float, pixels
+        Column of the projected rotation axis minus the detector centre
+        column ``(n_cols - 1)/2``; positive toward larger column indices.
+        Median over the pairs.
+    translation : float, length
+        The same offset as a lab-frame translation of the sample along lab
+        ``x`` (the detector's ``u``): ``offset_px · pixel_size /
+        magnification``. A constant lab translation ``(translation, 0, 0)``
+        (:func:`pdvc.simulate.lab_motion_to_poses`, or :func:`offset_poses`)
+        moves the nominal axis onto the detected one.
+    spread_px : float, pixels
+        Robust spread of the per-pair offsets, 1.4826 x their median
+        absolute deviation (0 when there is a single pair).
+    n_pairs : int
+    pairs : (n_pairs, 2) int64
+        View indices ``(i, j)``, ``θ_j ≈ θ_i + π``.
+    pair_offsets_px : (n_pairs,) float64, pixels
+    pair_correlation : (n_pairs,) float64
+        Normalised cross-correlation of each pair at its best shift (1 for
+        a perfect mirror image).
+    magnification : float
+        Source-to-detector over source-to-axis distance (mean over views;
+        1 for parallel beam).
+    pixel_size : float, length
+        Detector column pitch ``|u|`` (mean over views).
+    rows : (n_rows_used,) int64
+        Detector rows that were correlated.
+    """
+
+    offset_px: float
+    translation: float
+    spread_px: float
+    n_pairs: int
+    pairs: np.ndarray
+    pair_offsets_px: np.ndarray
+    pair_correlation: np.ndarray
+    magnification: float
+    pixel_size: float
+    rows: np.ndarray
+
+    @property
+    def lab_translation(self) -> np.ndarray:
+        """``(translation, 0, 0)``: the constant lab-frame translation of the sample, length."""
+        return np.array([self.translation, 0.0, 0.0])
+
+
+def _read_only(a, dtype=np.float64) -> np.ndarray:
+    arr = np.array(a, dtype=dtype)
+    arr.setflags(write=False)
+    return arr
+
+
+def _scan_angles(geom: VectorGeometry) -> np.ndarray:
+    """Azimuth of each view's lab ``x`` (detector ``u``) in the sample frame, radians in [0, 2π).
+
+    Exactly the scan angle θ of :func:`pdvc.geometry.circular_cone` and
+    :func:`pdvc.geometry.parallel`.
+    """
+    F = lab_frames(geom)
+    return np.mod(np.arctan2(F[:, 1, 0], F[:, 0, 0]), 2 * np.pi)
+
+
+def _magnification(geom: VectorGeometry) -> np.ndarray:
+    """Per-view magnification of the nominal axis (the volume-frame origin)."""
+    if geom.kind != "cone":
+        return np.ones(geom.n_views)
+    N = geom.det_normal
+    src = geom.src
+    sdd = np.einsum("ij,ij->i", geom.det_center - src, N)
+    sod = np.einsum("ij,ij->i", -src, N)
+    return sdd / sod
+
+
+def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.ndarray, float]:
+    """Unordered pairs ``(i, j)``, ``i < j``, with ``θ_j`` nearest to ``θ_i + π`` within the tolerance."""
+    n = theta.size
+    srt = np.sort(theta)
+    gaps = np.diff(np.concatenate([srt, srt[:1] + 2 * np.pi]))
+    gaps = gaps[gaps > 1e-9]
+    step = float(np.median(gaps)) if gaps.size else 0.0
+    tol = 0.5 * step if max_mismatch is None else float(max_mismatch)
+    tol *= 1 + 1e-9  # a partner exactly half a step away counts
+    pairs = set()
+    for i in range(n):
+        d = np.abs((theta - theta[i] - np.pi + np.pi) % (2 * np.pi) - np.pi)
+        d[i] = np.inf
+        j = int(np.argmin(d))
+        if d[j] <= tol:
+            pairs.add((min(i, j), max(i, j)))
+    return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2), step
+
+
+def _prepare(img: np.ndarray) -> np.ndarray:
+    """Rows minus the straight line through their end values: zero at both ends, so zero padding adds no step."""
+    x = np.linspace(0.0, 1.0, img.shape[1])
+    return img - (img[:, :1] * (1.0 - x) + img[:, -1:] * x)
+
+
+def _shift_by_correlation(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shift: float) -> tuple[float, float]:
+    """Shift ``s`` (columns) with ``b(j) ≈ a(j + s)``, summed over rows; and the normalised peak.
+
+    Zero-padded FFT cross-correlation, then the band-limited (DFT)
+    interpolation of the correlation on a grid of ``1/upsample`` pixel
+    around the integer peak, then a parabola through the best grid point
+    and its neighbours.
+    """
+    n = a.shape[1]
+    size = 1 << int(np.ceil(np.log2(2 * n)))
+    A = np.fft.rfft(a, size, axis=1)
+    B = np.fft.rfft(b, size, axis=1)
+    X = np.sum(A * np.conj(B), axis=0)
+    corr = np.fft.irfft(X, size)
+    lags = np.fft.fftfreq(size, 1.0 / size)  # 0, 1, ..., -1
+    allowed = np.abs(lags) <= max_shift
+    i = int(np.argmax(np.where(allowed, corr, -np.inf)))
+    s0 = float(lags[i])
+    k = np.arange(X.size)
+    weight = np.where((k == 0) | ((size % 2 == 0) & (k == size // 2)), 1.0, 2.0)
+    grid = s0 + np.arange(-upsample, upsample + 1) / upsample
+    fine = (np.exp(2j * np.pi * np.outer(grid, k) / size) @ (weight * X)).real / size
+    j = int(np.argmax(fine))
+    frac = 0.0
+    if 0 < j < grid.size - 1:
+        y0, y1, y2 = fine[j - 1], fine[j], fine[j + 1]
+        den = y0 - 2 * y1 + y2
+        if den < 0:
+            frac = 0.5 * (y0 - y2) / den
+    shift = float(grid[j] + frac / upsample)
+    norm = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    ncc = float(fine[j] / norm) if norm > 0 else 0.0
+    if abs(shift) >= max_shift - 1.0:
+        shift = np.copysign(np.inf, shift)  # the peak sits at the search limit: no estimate
+    return shift, ncc
+
+
+def _rows(rows, geom: VectorGeometry) -> np.ndarray:
+    nr = geom.det_shape[0]
+    if rows is None:
+        if geom.kind == "cone":
+            m = max(1, nr // 4)
+            r0 = (nr - m) // 2
+            return np.arange(r0, r0 + m)
+        return np.arange(nr)
+    if isinstance(rows, slice):
+        idx = np.arange(nr)[rows]
+    else:
+        idx = np.atleast_1d(np.asarray(rows))
+        if idx.dtype.kind not in "iu" or idx.ndim != 1:
+            raise ShapeError(f"rows must be a slice or a 1D sequence of row indices (ints), got {rows!r}")
+    if idx.size == 0 or np.any(idx < -nr) or np.any(idx >= nr):
+        raise ShapeError(f"rows must select at least one of the {nr} detector rows, got {rows!r}")
+    return np.mod(idx, nr).astype(np.int64)
+
+
+def estimate_axis_offset(
+    projections,
+    geom: VectorGeometry,
+    *,
+    rows=None,
+    upsample: int = 10,
+    max_mismatch: float | None = None,
+    max_offset: float | None = None,
+    max_spread: float = 2.0,
+    min_correlation: float = 0.5,
+) -> AxisOffsetEstimate:
+    """Centre-of-rotation offset by cross-correlating each view with its mirrored opposite.
+
+    Every view ``i`` is paired with the view ``j`` whose angle is nearest
+    to ``θ_i + π``, if it lies within ``max_mismatch`` (default half the
+    median angular step; otherwise view ``i`` is skipped); each unordered
+    pair is used once. ``p_j`` is mirrored horizontally and the column
+    shift ``s`` that best aligns it with ``p_i`` is found by FFT
+    cross-correlation refined to ``1/upsample`` pixel and a parabola; the
+    pair's offset is ``s / 2``. The estimate is the median over pairs.
+
+    This works for 180° scans that include the end point (one pair, 0 and
+    180°), 360° scans (one pair per two views) and irregular angle lists.
+    In **cone beam**, the opposite view is only approximately a mirror
+    image (conjugate rays lie at ``θ + π + 2γ``, and depth changes the
+    magnification), so by default only the central quarter of the rows (the
+    mid-plane, where the cone angle is smallest) is correlated: the result
+    is a **coarse** estimate, good to a pixel or so at small cone angles,
+    for the P-DVC engine to refine, not a calibration.
+
+    Parameters
+    ----------
+    projections : (n_views, n_rows, n_cols) array
+        Line integrals (``-log`` of the flat/dark-normalised intensity);
+        read only (e.g. a memory map: only the paired views are read).
+    geom : VectorGeometry
+        Nominal geometry (cone or parallel); its scan angle at view k is
+        the azimuth of the detector's ``u`` (exact for
+        :func:`pdvc.geometry.circular_cone` / :func:`pdvc.geometry.parallel`).
+    rows : slice or sequence of int, optional
+        Detector rows to correlate (summed). Default all rows in parallel
+        beam, the central quarter (at least one) in cone beam.
+    upsample : int, >= 1
+        Sub-pixel grid of the correlation peak, ``1/upsample`` pixel.
+    max_mismatch : float, radians, optional
+        Largest ``|θ_j - θ_i - π|`` accepted for a pair.
+    max_offset : float, pixels, optional
+        Largest ``|offset_px|`` searched; default ``n_cols / 4``.
+    max_spread : float, pixels
+        The estimate is refused (:class:`InitError`) if the per-pair
+        offsets spread more than this (1.4826 x MAD).
+    min_correlation : float
+        Refused if the median normalised peak correlation of the pairs is
+        below this (the opposite views do not look alike).
+
+    Returns
+    -------
+    AxisOffsetEstimate
+
+    Raises
+    ------
+    InitError
+        No pair of opposite views, or an unreliable estimate (peaks at the
+        search limit, spread above ``max_spread``, weak correlation,
+        projections without signal).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pdvc.geometry import parallel
+    >>> from pdvc.simulate import shepp_logan_3d, project_analytic
+    >>> angles = np.linspace(0, np.pi, 181)
+    >>> geom = parallel(angles, det_shape=(4, 128), pixel=0.0125)
+    >>> moved = geom.apply_poses(*offset_poses(geom, 12.5))
+    >>> est = estimate_axis_offset(project_analytic(shepp_logan_3d(0.6), moved, supersampling=2), geom)
+    >>> abs(est.offset_px - 12.5) < 0.1
+    True
+    """
+    if not isinstance(geom, VectorGeometry):
+        raise InputTypeError(f"geom must be a pdvc.VectorGeometry, got {type(geom).__name__}")
+    shape = np.shape(projections)
+    expected = (geom.n_views, *geom.det_shape)
+    if shape != expected:
+        raise ShapeError(f"projections must have shape {expected} (n_views, n_rows, n_cols) like geom, got {shape}")
+    if not isinstance(upsample, (int, np.integer)) or isinstance(upsample, bool) or upsample < 1:
+        raise InputTypeError(f"upsample must be a positive int, got {upsample!r}")
+    n_cols = geom.det_shape[1]
+    lim = n_cols / 4 if max_offset is None else float(max_offset)
+    if not (np.isfinite(lim) and lim > 0):
+        raise InitError(f"max_offset must be a positive number of pixels, got {max_offset!r}")
+    row_idx = _rows(rows, geom)
+
+    theta = _scan_angles(geom)
+    pairs, step = _opposite_pairs(theta, max_mismatch)
+    if pairs.shape[0] == 0:
+        span = np.degrees(np.ptp(np.unwrap(np.sort(theta))))
+        tol = np.degrees(0.5 * step if max_mismatch is None else max_mismatch)
+        raise InitError(
+            f"no pair of opposite views: expected for some view at θ another at θ+180° within {tol:.3g}° "
+            f"(half the angular step), but the {geom.n_views} views span {span:.4g}° "
+            "(a 180° scan must include its end point, e.g. 181 views over 0..180°; or pass max_mismatch)"
+        )
+
+    offsets, nccs = [], []
+    for i, j in pairs:
+        a = _prepare(np.asarray(projections[i], np.float64)[row_idx])
+        b = _prepare(np.asarray(projections[j], np.float64)[row_idx][:, ::-1])
+        s, ncc = _shift_by_correlation(a, b, upsample=int(upsample), max_shift=2 * lim + 1)
+        offsets.append(0.5 * s)
+        nccs.append(ncc)
+    offsets, nccs = np.array(offsets), np.array(nccs)
+    good = np.isfinite(offsets)
+    if not np.any(good):
+        raise InitError(
+            f"no reliable pair: every correlation peak lies at the search limit |offset| = {lim:g} px; "
+            "expected the projected axis within max_offset of the detector centre (raise max_offset, or the "
+            "opposite views do not overlap)"
+        )
+    if not np.all(good):
+        log.warning("%d of %d pairs peak at the search limit and are left out", np.count_nonzero(~good), good.size)
+    med = float(np.median(offsets[good]))
+    spread = float(_MAD_TO_SIGMA * np.median(np.abs(offsets[good] - med))) if np.count_nonzero(good) > 1 else 0.0
+    med_ncc = float(np.median(nccs))
+    if not np.isfinite(med_ncc) or med_ncc < min_correlation:
+        raise InitError(
+            f"unreliable estimate: the opposite views correlate weakly (median normalised peak {med_ncc:.3f}, "
+            f"expected >= {min_correlation}); check that the projections are line integrals and the angles "
+            "are right"
+        )
+    if spread > max_spread:
+        raise InitError(
+            f"unreliable estimate: the {np.count_nonzero(good)} pairs disagree by {spread:.3g} px (robust spread, "
+            f"expected <= {max_spread} px; median {med:+.3f} px)"
+        )
+    mag = _magnification(geom)
+    pitch = np.linalg.norm(geom.u, axis=1)
+    translation = float(np.mean(med * pitch / mag))
+    log.info(
+        "axis offset %+.3f px (%+.5g length along lab x) from %d pair(s) of opposite views, spread %.3f px",
+        med,
+        translation,
+        pairs.shape[0],
+        spread,
+    )
+    return AxisOffsetEstimate(
+        offset_px=med,
+        translation=translation,
+        spread_px=spread,
+        n_pairs=int(pairs.shape[0]),
+        pairs=_read_only(pairs, np.int64),
+        pair_offsets_px=_read_only(offsets),
+        pair_correlation=_read_only(nccs),
+        magnification=float(np.mean(mag)),
+        pixel_size=float(np.mean(pitch)),
+        rows=_read_only(row_idx, np.int64),
+    )
+
+
+def offset_poses(geom: VectorGeometry, offset_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view sample-frame poses that move the nominal axis by ``offset_px`` columns.
+
+    The sample is translated, at every view, along the lab ``x`` (the
+    view's detector ``u``) by ``offset_px · |u_k| / M_k`` (``M_k`` the
+    magnification of the nominal axis, 1 in parallel beam), a constant lab
+    translation for a circular scan. Then
+    ``geom.apply_poses(rotvecs, translations)`` projects every point of the
+    nominal axis (x = y = 0 of the volume frame) exactly ``offset_px``
+    columns further than ``geom`` does, at its row; the result is a
+    starting point for the engine, e.g. from
+    :func:`estimate_axis_offset`.
+
+    Parameters
+    ----------
+    geom : VectorGeometry
+        Nominal geometry.
+    offset_px : float, pixels
+        Signed, positive toward larger column indices.
+
+    Returns
+    -------
+    rotvecs, translations : (n_views, 3) float64 arrays
+        Zero rotations; translations in length units, sample xyz.
+    """
+    if not isinstance(geom, VectorGeometry):
+        raise InputTypeError(f"geom must be a pdvc.VectorGeometry, got {type(geom).__name__}")
+    off = float(offset_px) if np.ndim(offset_px) == 0 else np.nan
+    if not np.isfinite(off):
+        raise InitError(f"offset_px must be a finite number of pixels, got {offset_px!r}")
+    u = geom.u
+    pitch = np.linalg.norm(u, axis=1)
+    length = off * pitch / _magnification(geom)
+    translations = (length / pitch)[:, None] * u
+    return np.zeros((geom.n_views, 3)), translations
