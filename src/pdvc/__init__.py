@@ -5,6 +5,8 @@ from .geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
 from .projectors import backproject, forward, jacobian, reduce_views
 from .recon import fbp, fdk
 from .correlation import correlate
+from ._calibrate import calibrate
+from .calibration import CalibrationResult
 
 __version__ = "0.1.0"
 
@@ -25,4 +27,6 @@ __all__ = [
     "fdk",
     "fbp",
     "correlate",
+    "calibrate",
+    "CalibrationResult",
 ]

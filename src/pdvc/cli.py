@@ -1,7 +1,16 @@
-"""Command line: ``pdvc demo`` (more sub-commands come with the pipeline).
+"""Command line: ``pdvc demo | calibrate | reconstruct | simulate | inspect``.
 
-Exit codes: 0 success; 1 a pdvc error (bad input, refused output folder);
-2 wrong command-line usage; 130 interrupted.
+The CLI is thin: it parses, calls the library, prints. Long steps report
+their progress on stderr; ``-v`` adds the library's log.
+
+Exit codes
+----------
+0  success
+1  a pdvc error: bad input (the message names the parameter, what was
+   expected and what came), refused output folder, failed calibration
+2  wrong command-line usage
+130  interrupted (Ctrl-C); every file already written is whole, ``run.json``
+   says the run is not complete and ``pdvc calibrate --resume`` continues it
 """
 
 from __future__ import annotations
@@ -9,55 +18,247 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
+from pathlib import Path
+
+import numpy as np
 
 from . import __version__
 from .errors import PdvcError
 
 log = logging.getLogger("pdvc")
 
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
+
+class _Progress:
+    """One line per stage on stderr (a progress log rather than a bar: it survives pipes and log files)."""
+
+    def __init__(self, stream=sys.stderr, quiet: bool = False):
+        self.stream = stream
+        self.quiet = quiet
+        self.t0 = time.perf_counter()
+
+    def __call__(self, info: dict) -> None:
+        if self.quiet:
+            return
+        stage = info.get("stage", "")
+        el = time.perf_counter() - self.t0
+        if stage == "init":
+            msg = "coarse initialisation (axis offset from opposite views)"
+        elif stage == "reconstruct":
+            msg = f"reconstruction ({info.get('what', '')})"
+        elif stage == "scale":
+            msg = f"scale {info['scale']}: detector {info['det_shape'][0]}x{info['det_shape'][1]}, grid {'x'.join(map(str, info['volume']))}"
+        elif stage == "outer":
+            parts = [f"  scale {info.get('scale')} outer {info.get('iteration')}"]
+            if "chi_before" in info and "chi_after" in info:
+                parts.append(f"chi {info['chi_before']:.4g} -> {info['chi_after']:.4g}")
+            if "increment_px" in info:
+                parts.append(f"increment {info['increment_px']:.3g} px")
+            msg = ", ".join(parts)
+        elif stage == "resume":
+            msg = f"resuming at scale {info.get('scale')} after {info.get('iteration')} outer iterations"
+        else:
+            msg = stage
+        print(f"[{el:7.1f} s] {msg}", file=self.stream, flush=True)
+
+
+# ----------------------------------------------------------------------------
+# demo
+# ----------------------------------------------------------------------------
 def _demo(args: argparse.Namespace) -> int:
     from ._demo import run_demo
-    from .io import atomic_write_npy, prepare_output_dir
 
-    out = prepare_output_dir(args.out, overwrite=args.overwrite) if args.out else None
-    res = run_demo(size=args.size, n_views=args.views, seed=args.seed)
-    n = args.size
-    print(f"pdvc {__version__} demo: cast-iron rod, volume {n}^3, {args.views} views, detector {res.det_shape[0]}x{res.det_shape[1]}")
-    print("  motion: axis tilted 0.5 deg and offset, precessing 0.15 deg, drifting; Poisson noise i0 = 2e4")
-    print(f"  simulated with the analytic ellipsoid projector in {res.t_simulate:.1f} s")
-    print(
-        f"  the nominal geometry misplaces the sample by {res.nominal_error.rms:.2f} px RMS "
-        f"(max {res.nominal_error.max:.2f} px) on the detector, gauge removed"
+    print(f"pdvc {__version__} demo: cast-iron rod, volume {args.size}^3, {args.views} views over 360 deg, Poisson noise i0 = 2e4")
+    print("  simulated with the analytic ellipsoid projector; motion: axis tilted 0.5 deg and offset, precessing 0.15 deg, drifting")
+    res = run_demo(size=args.size, n_views=args.views, seed=args.seed, out_dir=args.out, overwrite=args.overwrite, progress=_Progress(quiet=args.quiet))
+    cal = res.calibration
+    print(f"  simulation {res.t_simulate:.1f} s, calibration {res.t_calibrate:.1f} s ({cal.message})")
+    print()
+    print("  reprojection error of sample points vs the true geometry (gauge removed):")
+    print(f"    nominal geometry     {res.nominal_error.rms:7.3f} px RMS  (max {res.nominal_error.max:.3f} px)")
+    print(f"    calibrated geometry  {res.recovered_error.rms:7.3f} px RMS  (max {res.recovered_error.max:.3f} px)")
+    print(f"  mean SNR of the projections: {np.mean(cal.snr_before):.2f} dB -> {np.mean(cal.snr_after):.2f} dB")
+    print(f"  entropy of the reconstruction: {cal.entropy_before:.3f} -> {cal.entropy_after:.3f} bits")
+    if cal.motion is not None and hasattr(cal.motion, "describe"):
+        print("  what moved:")
+        for line in cal.motion.describe():
+            print(f"    {line}")
+    if args.out:
+        print(f"  outputs and report.html in {args.out}")
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------
+# config-driven commands
+# ----------------------------------------------------------------------------
+def _calibrate(args: argparse.Namespace) -> int:
+    from ._calibrate import calibrate
+    from ._inputs import load_scan
+
+    scan = load_scan(args.config, out_dir=args.out)
+    cfg = scan.config
+    out = args.out or cfg.output.dir
+    if out is None:
+        raise PdvcError("no output folder: pass --out DIR or set [output] dir in the config")
+    _print_scan(scan)
+    res = calibrate(
+        scan.projections,
+        scan.geometry,
+        scan.vol_geom,
+        out_dir=out,
+        overwrite=args.overwrite or cfg.output.overwrite,
+        resume=args.resume,
+        config=cfg,
+        save_initial_volume=cfg.output.save_initial_volume,
+        progress=_Progress(quiet=args.quiet),
+        weights=scan.weights,
+        **scan.calibration_options,
     )
-    print()
-    print(f"  {'reconstruction with':18s} {'RMSE/range':>10s} {'entropy':>8s} {'SNR dB':>7s} {'FDK s':>6s} {'Jacobian pass s':>15s}")
-    for r in res.rows:
-        print(f"  {r.label:18s} {r.rmse:10.4f} {r.entropy:8.3f} {r.snr_db:7.2f} {r.t_fdk:6.2f} {r.t_jacobian:15.2f}")
-    print()
-    print("  (the P-DVC engine that finds the true geometry from the data is issue #3; see README)")
-    if out is not None:
-        atomic_write_npy(out / "geometry_nominal.npy", res.scan.geometry.vectors)
-        atomic_write_npy(out / "geometry_true.npy", res.scan.true_geometry.vectors)
-        atomic_write_npy(out / "projections.npy", res.scan.projections)
-        for r in res.rows:
-            atomic_write_npy(out / f"volume_{r.label.replace(' ', '_')}.npy", r.volume)
-        print(f"  wrote geometries, projections and volumes (.npy) to {out}")
-    return 0
+    print(f"calibration: {res.message} in {res.elapsed_s:.1f} s")
+    print(f"  mean SNR {np.mean(res.snr_before):.2f} -> {np.mean(res.snr_after):.2f} dB; entropy {res.entropy_before:.3f} -> {res.entropy_after:.3f} bits")
+    if res.motion is not None and hasattr(res.motion, "describe"):
+        for line in res.motion.describe():
+            print(f"  {line}")
+    print(f"  outputs in {out} (report.html, geometry.npy, motion.csv, result.h5, volume.tif)")
+    return EXIT_OK if res.status >= 0 else EXIT_ERROR
 
 
+def _reconstruct(args: argparse.Namespace) -> int:
+    import tifffile
+
+    from ._inputs import load_scan
+    from .calibration import reconstruct
+    from .geometry import VectorGeometry
+    from .io import atomic_path
+
+    scan = load_scan(args.config)
+    geom = scan.geometry
+    if args.geometry:
+        vec = np.load(args.geometry)
+        if vec.shape != (geom.n_views, 12):
+            raise PdvcError(f"--geometry must hold ({geom.n_views}, 12) vectors (one row per view), got {vec.shape} from {args.geometry}")
+        geom = VectorGeometry(vec, geom.det_shape, geom.kind)
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise PdvcError(f"--out {str(out)!r} exists; pass --overwrite to replace it")
+    vol = reconstruct(scan.projections, scan.vol_geom, geom)
+    with atomic_path(out) as tmp:
+        tifffile.imwrite(tmp, vol.astype(np.float32), metadata={"axes": "ZYX"})
+    print(f"reconstruction {'x'.join(map(str, vol.shape))} written to {out}")
+    return EXIT_OK
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from ._demo import demo_scan
+    from .io import atomic_write_npy, atomic_write_text, prepare_output_dir
+
+    out = prepare_output_dir(args.out, overwrite=args.overwrite)
+    scan, vg = demo_scan(size=args.size, n_views=args.views, seed=args.seed)
+    atomic_write_npy(out / "projections.npy", scan.projections)
+    atomic_write_npy(out / "geometry_nominal.npy", scan.geometry.vectors)
+    atomic_write_npy(out / "geometry_true.npy", scan.true_geometry.vectors)
+    atomic_write_npy(out / "poses_true.npy", np.hstack([scan.rotvecs, scan.translations]))
+    nr, nc = scan.geometry.det_shape
+    n = args.size
+    config = f"""# pdvc calibrate config.toml  (written by `pdvc simulate`)
+# A cone-beam scan simulated with the analytic ellipsoid projector and known motion:
+# geometry_true.npy is the answer, poses_true.npy the poses (rotation vector, translation).
+[data]
+path = "projections.npy"
+is_raw = false
+
+[geometry]
+type = "cone"
+sod = {8.0 * n}
+odd = {4.0 * n}
+pixel = 1.5
+det_shape = [{nr}, {nc}]
+angles = {{ start = 0.0, stop = 360.0, count = {args.views} }}
+
+[volume]
+shape = [{n}, {n}, {n}]
+voxel_size = 1.0
+
+[output]
+dir = "calibrated"
+"""
+    atomic_write_text(out / "config.toml", config)
+    print(f"simulated {args.views} views of {nr}x{nc} px into {out}: projections.npy, geometry_nominal.npy, geometry_true.npy, config.toml")
+    print(f"calibrate it with:  pdvc calibrate {out / 'config.toml'}")
+    return EXIT_OK
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from ._inputs import inspect_scan
+
+    lines, problems = inspect_scan(args.config)
+    for line in lines:
+        print(line)
+    if problems:
+        print("problems:")
+        for p in problems:
+            print(f"  - {p}")
+        return EXIT_ERROR
+    print("no inconsistency found")
+    return EXIT_OK
+
+
+def _print_scan(scan) -> None:
+    g = scan.geometry
+    print(f"data: {scan.projections.shape[0]} views of {g.det_shape[0]}x{g.det_shape[1]} px ({g.kind} beam), grid {'x'.join(map(str, scan.vol_geom.shape))}")
+    for line in scan.notes:
+        print(f"  {line}")
+
+
+# ----------------------------------------------------------------------------
+# parser
+# ----------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pdvc", description="Self-calibration of lab micro-CT scans by projection-based DVC.")
+    parser = argparse.ArgumentParser(
+        prog="pdvc",
+        description="Self-calibration of lab micro-CT scans by projection-based DVC.",
+        epilog="Exit codes: 0 success, 1 pdvc error (bad input, refused output), 2 usage, 130 interrupted.",
+    )
     parser.add_argument("--version", action="version", version=f"pdvc {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="simulate a drifting scan, reconstruct it, print figures")
-    demo.add_argument("--out", help="folder for the outputs (.npy); nothing is written if absent")
+
+    demo = sub.add_parser("demo", help="simulate a drifting, precessing scan, calibrate it, print the errors")
+    demo.add_argument("--out", help="folder for the outputs and report.html; nothing is written if absent")
     demo.add_argument("--overwrite", action="store_true", help="allow a non-empty --out folder")
-    demo.add_argument("--size", type=int, default=96, help="volume edge in voxels (default 96)")
-    demo.add_argument("--views", type=int, default=180, help="number of projections over 360 deg (default 180)")
+    demo.add_argument("--size", type=int, default=64, help="volume edge in voxels (default 64)")
+    demo.add_argument("--views", type=int, default=150, help="projections over 360 deg (default 150)")
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(func=_demo)
+
+    cal = sub.add_parser("calibrate", help="calibrate a scan described by a TOML config")
+    cal.add_argument("config", help="TOML configuration (see the user guide)")
+    cal.add_argument("--out", help="output folder (default: [output] dir of the config)")
+    cal.add_argument("--overwrite", action="store_true", help="allow a non-empty output folder")
+    cal.add_argument("--resume", action="store_true", help="continue an interrupted run in the output folder")
+    cal.set_defaults(func=_calibrate)
+
+    rec = sub.add_parser("reconstruct", help="reconstruct a scan (FDK / FBP) with its nominal or a calibrated geometry")
+    rec.add_argument("config", help="TOML configuration")
+    rec.add_argument("--geometry", help="per-view vectors (.npy, (n_views, 12)), e.g. geometry.npy of a calibration")
+    rec.add_argument("--out", default="volume.tif", help="output TIFF (default volume.tif)")
+    rec.add_argument("--overwrite", action="store_true")
+    rec.set_defaults(func=_reconstruct)
+
+    sim = sub.add_parser("simulate", help="write a simulated scan with known motion, its true geometry and a config")
+    sim.add_argument("--out", required=True, help="output folder")
+    sim.add_argument("--overwrite", action="store_true")
+    sim.add_argument("--size", type=int, default=64)
+    sim.add_argument("--views", type=int, default=150)
+    sim.add_argument("--seed", type=int, default=0)
+    sim.set_defaults(func=_simulate)
+
+    ins = sub.add_parser("inspect", help="summarise the data and geometry of a config, flag inconsistencies")
+    ins.add_argument("config", help="TOML configuration")
+    ins.set_defaults(func=_inspect)
     return parser
 
 
@@ -71,10 +272,10 @@ def main(argv=None) -> int:
         return args.func(args)
     except PdvcError as exc:
         print(f"pdvc: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_ERROR
     except KeyboardInterrupt:
-        print("pdvc: interrupted", file=sys.stderr)
-        return 130
+        print("pdvc: interrupted; files already written are whole (see run.json); `--resume` continues", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":  # pragma: no cover

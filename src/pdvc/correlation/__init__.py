@@ -9,6 +9,8 @@ from ._engine import STATUS, CorrelationError, CorrelationResult, Mode, Observab
 from ._frames import lab_frames, lab_to_sample_map
 from ._metrics import shannon_entropy, snr_db
 from ._noise import estimate_noise_variance, poisson_variance
+from ._roi import cone_artifact_rows, detector_weights
+from ._scales import coarse_grain, coarse_noise_factor, coarse_volume, scale_schedule
 
 __all__ = [
     "correlate",
@@ -30,4 +32,10 @@ __all__ = [
     "poisson_variance",
     "snr_db",
     "shannon_entropy",
+    "cone_artifact_rows",
+    "detector_weights",
+    "coarse_grain",
+    "coarse_noise_factor",
+    "coarse_volume",
+    "scale_schedule",
 ]

@@ -1,0 +1,179 @@
+"""From a TOML configuration to calibration-ready inputs (the CLI's front end).
+
+``load_scan(config)`` reads the projections (and flats/darks), normalises
+them to line integrals, applies the beam-hardening polynomial, builds the
+nominal geometry (circular cone/parallel, vector rows or a vendor file),
+crops the detector ROI, bins, and builds the reconstruction grid; it
+returns them with the engine options of ``[calibration]`` and the fully
+resolved configuration (what ``config.toml`` in the outputs holds).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .correlation import coarse_grain
+from .errors import PdvcError
+from .geometry import VectorGeometry, VolumeGeometry
+
+log = logging.getLogger("pdvc")
+
+__all__ = ["Scan", "load_scan", "inspect_scan", "calibration_options"]
+
+
+@dataclass(frozen=True)
+class Scan:
+    projections: np.ndarray
+    geometry: VectorGeometry
+    vol_geom: VolumeGeometry
+    weights: Optional[np.ndarray]
+    calibration_options: dict
+    config: object  # the resolved Config
+    notes: tuple
+    raw: object
+
+
+def calibration_options(cal) -> dict:
+    """``[calibration]`` keys as :func:`pdvc.calibrate` options."""
+    opts = dict(
+        basis=cal.basis,
+        method=cal.method,
+        frame=cal.frame,
+        fixed=tuple(cal.fixed),
+        scales=tuple(cal.scales) if cal.scales != "auto" else "auto",
+        n_outer=int(cal.max_outer),
+        tol_px=float(cal.tol_px),
+        max_iter=int(cal.max_iter),
+        max_modes=int(cal.max_modes),
+        pgd_passes=int(cal.pgd_passes),
+        min_gain=float(cal.min_gain),
+        noise_floor=float(cal.noise_floor),
+        rcond=float(cal.rcond),
+        fix_scale=bool(cal.fix_scale),
+        backend=cal.backend,
+    )
+    if cal.center is not None:
+        opts["center"] = tuple(cal.center)
+    return opts
+
+
+def _vendor(cfg):
+    if cfg.geometry.type in ("nikon", "skyscan"):
+        from .io import _vendor as vendor
+
+        return vendor.read_vendor_geometry(cfg.geometry.file, cfg.geometry.type)
+    return None
+
+
+def load_scan(config, *, out_dir=None) -> Scan:
+    """Read and prepare everything a ``[data]``/``[geometry]``/``[volume]`` config describes."""
+    from .io import beam_hardening, detector_roi, flats_from_columns, normalize, read_projections
+    from .io._config import build_geometry, build_volume_geometry, check_coverage, load_config
+
+    cfg = load_config(config)
+    d = cfg.data
+    notes = []
+    raw = read_projections(
+        d.path,
+        fmt=d.format,
+        flats=d.flats,
+        darks=d.darks,
+        dataset=d.dataset,
+        sinogram=d.sinogram,
+        is_raw=None if d.is_raw == "auto" else bool(d.is_raw),
+    )
+    notes.append(f"read {raw.format} {d.path}: {raw.data.shape[0]} views of {raw.data.shape[1]}x{raw.data.shape[2]} px, {'raw counts' if raw.is_raw else 'line integrals'}")
+    if d.open_beam_columns is not None:
+        a, b = d.open_beam_columns
+        raw = flats_from_columns(raw, columns=slice(a, b))
+        notes.append(f"flats from open-beam columns {a}..{b - 1}")
+    pp = cfg.preprocess
+    p, rep = normalize(raw, flat_interpolation=pp.flat_interpolation, clip_min=pp.clip_min)
+    n_clipped = int(getattr(rep, "n_clipped", 0))
+    if n_clipped:
+        notes.append(f"normalisation clipped {n_clipped} non-positive or tiny transmissions (clip_min {pp.clip_min:g})")
+    if pp.beam_hardening is not None:
+        p = beam_hardening(p, pp.beam_hardening)
+        notes.append(f"beam-hardening polynomial {list(pp.beam_hardening)}")
+    vend = _vendor(cfg)
+    geom = build_geometry(cfg.geometry, n_views=p.shape[0], det_shape=p.shape[1:], data_angles=raw.angles)
+    if geom.n_views != p.shape[0] or tuple(geom.det_shape) != tuple(p.shape[1:]):
+        raise PdvcError(
+            f"the geometry describes {geom.n_views} views of {tuple(geom.det_shape)} px but the projections are "
+            f"{p.shape[0]} views of {tuple(p.shape[1:])} px; expected them to agree"
+        )
+    if pp.roi_rows is not None or pp.roi_cols is not None:
+        p, geom = detector_roi(p, geom, rows=pp.roi_rows, cols=pp.roi_cols)
+        notes.append(f"detector ROI rows {pp.roi_rows}, cols {pp.roi_cols}: {p.shape[1]}x{p.shape[2]} px")
+    if pp.bin > 1:
+        p, geom = coarse_grain(p, geom, int(pp.bin))
+        notes.append(f"binned {pp.bin}x{pp.bin} (Gaussian then block mean)")
+    if p.shape[1] == 1:
+        # the interpolating projectors need two rows: a one-row sinogram becomes two
+        # identical rows half a pixel above and below it (a slab two voxels thick)
+        p = np.repeat(p, 2, axis=1)
+        geom = VectorGeometry(geom.vectors, (2, geom.det_shape[1]), geom.kind)
+        notes.append("one detector row: duplicated into two identical rows (a 2-voxel slab)")
+    vol_geom = build_volume_geometry(cfg.volume, geom, defaults=None if vend is None else vend.volume_geometry())
+    frac = check_coverage(geom, vol_geom)
+    if frac < 0.999:
+        notes.append(f"warning: only {100 * frac:.0f}% of the volume box projects onto the detector at the worst view")
+    resolved = cfg.resolved(n_views=p.shape[0], det_shape=raw.det_shape if pp.roi_rows is None and pp.roi_cols is None and pp.bin == 1 else None, vol_geom=vol_geom)
+    if out_dir is not None:
+        resolved = dataclasses.replace(resolved, output=dataclasses.replace(resolved.output, dir=str(out_dir)))
+    return Scan(
+        projections=np.ascontiguousarray(p, dtype=np.float32),
+        geometry=geom,
+        vol_geom=vol_geom,
+        weights=None,
+        calibration_options=calibration_options(cfg.calibration),
+        config=resolved,
+        notes=tuple(notes),
+        raw=raw,
+    )
+
+
+def inspect_scan(config) -> tuple[list, list]:
+    """Summary lines and a list of problems (empty when consistent)."""
+    lines, problems = [], []
+    try:
+        scan = load_scan(config)
+    except PdvcError as exc:
+        return [f"config {config}"], [str(exc)]
+    g = scan.geometry
+    p = scan.projections
+    lines.append(f"config {config}")
+    lines.extend(scan.notes)
+    lines.append(f"geometry: {g.kind} beam, {g.n_views} views, detector {g.det_shape[0]}x{g.det_shape[1]}")
+    from .correlation import lab_frames
+
+    F = lab_frames(g)
+    ang = np.rad2deg(np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0])))
+    span = float(ang.max() - ang.min()) if g.n_views > 1 else 0.0
+    lines.append(f"angles: {ang[0]:.2f} .. {ang[-1]:.2f} deg (span {span:.1f} deg, mean step {span / max(g.n_views - 1, 1):.3f} deg)")
+    if g.kind == "cone":
+        sod = np.linalg.norm(g.src, axis=1)
+        sdd = np.linalg.norm(g.src - g.det_center, axis=1)
+        lines.append(f"SOD {np.median(sod):.4g}, SDD {np.median(sdd):.4g}, magnification {np.median(sdd / sod):.4g}")
+    vg = scan.vol_geom
+    lines.append(f"volume: {'x'.join(map(str, vg.shape))} voxels of {vg.voxel_size} (z, y, x), offset {vg.offset}")
+    lines.append(f"projections: min {float(p.min()):.4g}, max {float(p.max()):.4g}, mean {float(p.mean()):.4g}")
+    if float(p.max()) <= 0:
+        problems.append("projections are all <= 0: expected positive line integrals (is [data] is_raw right?)")
+    if span < 179.0:
+        problems.append(f"the angles span only {span:.1f} deg: a tomographic scan needs at least 180 deg")
+    n_cols = g.det_shape[1]
+    nyquist = np.pi / 2 * n_cols
+    if g.n_views < 0.25 * nyquist:
+        lines.append(f"note: {g.n_views} views is well below the angular Nyquist rate (~{nyquist:.0f} for {n_cols} columns)")
+    from .io._config import check_coverage
+
+    frac = check_coverage(g, vg)
+    if frac < 0.5:
+        problems.append(f"the volume box projects onto the detector for only {100 * frac:.0f}% of its extent at the worst view")
+    return lines, problems
