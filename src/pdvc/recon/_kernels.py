@@ -106,18 +106,18 @@ def backproject_block(vol, q, P, zinv):  # pragma: no cover - compiled
                 if fast:
                     inv = 1.0 / w2
                     col = w0 * inv
-                    if col < 0.0 or col > cmax:
+                    if col < -0.5 or col > cmax + 0.5:
                         continue
-                    j = min(np.uint64(col), jmax)
-                    fc = col - np.float64(j)
+                    j = min(np.uint64(max(col, 0.0)), jmax)
+                    fc = min(max(col - np.float64(j), 0.0), 1.0)  # edge pixel over its outer half
                     wgt = inv * inv
                     wa = np.float32(wgt * (1.0 - fc))
                     wb = np.float32(wgt * fc)
                     r0 = w1 * inv
                     dr = a1 * inv
-                    # 0 <= r0 + z dr <= rmax
-                    zlo, zhi = _z_range(r0, dr, 0.0, nz - 1.0)
-                    zlo, zhi = _z_range(rmax - r0, -dr, zlo, zhi)
+                    # -1/2 <= r0 + z dr <= rmax + 1/2: a pixel covers its outer half too
+                    zlo, zhi = _z_range(r0 + 0.5, dr, 0.0, nz - 1.0)
+                    zlo, zhi = _z_range(rmax + 0.5 - r0, -dr, zlo, zhi)
                     if zlo > zhi:
                         continue
                     izlo = np.uint64(math.ceil(zlo))
@@ -127,16 +127,17 @@ def backproject_block(vol, q, P, zinv):  # pragma: no cover - compiled
                     for iz in range(izlo, izhi + _U1):
                         r = r0 + np.float64(iz) * dr
                         i = min(np.uint64(max(r, 0.0)), imax)  # max: no negative to unsigned
-                        fr = np.float32(r - np.float64(i))
+                        fr = np.float32(min(max(r - np.float64(i), 0.0), 1.0))
                         va = qa[i] + fr * (qa[i + _U1] - qa[i])
                         vc = qc[i] + fr * (qc[i + _U1] - qc[i])
                         bx[iz] += wa * va + wb * vc
                 else:
                     # w2 + z a2 > 0 on the whole volume (checked by the caller)
-                    zlo, zhi = _z_range(w0, a0, 0.0, nz - 1.0)  # col >= 0
-                    zlo, zhi = _z_range(cmax * w2 - w0, cmax * a2 - a0, zlo, zhi)  # col <= cmax
-                    zlo, zhi = _z_range(w1, a1, zlo, zhi)  # row >= 0
-                    zlo, zhi = _z_range(rmax * w2 - w1, rmax * a2 - a1, zlo, zhi)  # row <= rmax
+                    # -1/2 <= col <= cmax + 1/2 and the same for rows: edge pixels cover their outer half
+                    zlo, zhi = _z_range(w0 + 0.5 * w2, a0 + 0.5 * a2, 0.0, nz - 1.0)
+                    zlo, zhi = _z_range((cmax + 0.5) * w2 - w0, (cmax + 0.5) * a2 - a0, zlo, zhi)
+                    zlo, zhi = _z_range(w1 + 0.5 * w2, a1 + 0.5 * a2, zlo, zhi)
+                    zlo, zhi = _z_range((rmax + 0.5) * w2 - w1, (rmax + 0.5) * a2 - a1, zlo, zhi)
                     if zlo > zhi:
                         continue
                     izlo = np.uint64(math.ceil(zlo))
@@ -148,8 +149,8 @@ def backproject_block(vol, q, P, zinv):  # pragma: no cover - compiled
                         r = (w1 + z * a1) * inv
                         j = min(np.uint64(max(col, 0.0)), jmax)
                         i = min(np.uint64(max(r, 0.0)), imax)  # max: no negative to unsigned
-                        fc = np.float32(col - np.float64(j))
-                        fr = np.float32(r - np.float64(i))
+                        fc = np.float32(min(max(col - np.float64(j), 0.0), 1.0))
+                        fr = np.float32(min(max(r - np.float64(i), 0.0), 1.0))
                         k = j * unr + i
                         q00 = qf[k]
                         q01 = qf[k + _U1]
