@@ -56,6 +56,8 @@ def calibration_options(cal) -> dict:
         rcond=float(cal.rcond),
         fix_scale=bool(cal.fix_scale),
         backend=cal.backend,
+        oversample=int(cal.oversample),
+        init=cal.init,
     )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)

@@ -182,7 +182,7 @@ def calibrate(
     fixed=("rz",),
     scales="auto",
     oversample: int = 2,
-    n_outer: int = 6,
+    n_outer: int = 10,
     tol_px: float = 0.01,
     init: str = "auto",
     fix_scale: bool = True,
@@ -327,6 +327,8 @@ def calibrate(
 
         def outer_cb(info, s=s):
             info = dict(info)
+            if "stage" in info:
+                info["phase"] = info.pop("stage")
             info.update(scale=s)
             history_entry = {k: info[k] for k in ("iteration", "chi_before", "chi_after", "snr", "increment_px") if k in info}
             emit(stage="outer", **info)
@@ -337,7 +339,7 @@ def calibrate(
             p_s, g_s, vg_s,
             initial_rotvecs=rv, initial_translations=t,
             oversample=oversample, basis=basis, method=method, frame=frame, fixed=tuple(fixed),
-            n_outer=n_outer, tol_px=tol_px / s, weights=w_s, times=times,
+            n_outer=n_outer, tol_px=tol_px / s, weights=w_s, times=times, fix_scale=fix_scale,
             noise_variance=gamma2 * coarse_noise_factor(s),
             callback=outer_cb, **correlate_options,
         )
@@ -351,6 +353,24 @@ def calibrate(
         if checkpoint is not None:
             checkpoint(dict(rotvecs=rv, translations=t, history=list(history), scale_index=si + 1, offset_px=offset_px))
 
+    # Too large for the linearisation? Two signs, either is enough (no coarse
+    # initialisation having placed the axis first): the last outer iteration still
+    # moves sample points by more than a pixel, or the data consistency of the
+    # reconstruction (chi of a fresh FDK re-projected) stayed far above the noise
+    # (> 3) and fell by less than half over the whole run.
+    if history and status <= 0 and offset_px is None:
+        inc = float(history[-1].get("increment_px", 0.0)) * sched[-1]
+        c0, c1 = float(history[0].get("chi_before", np.nan)), float(history[-1].get("chi_before", np.nan))
+        stuck = np.isfinite(c0) and np.isfinite(c1) and c1 > 3.0 and c1 > 0.5 * c0
+        if inc > max(1.0, 20 * tol_px) or stuck:
+            message = (
+                f"not converged: the last outer iteration moved sample points by {inc:.2f} px and the "
+                f"reconstruction's chi went {c0:.3g} -> {c1:.3g} (1 = noise only); the motion may be too large "
+                f"for the linearisation at scale {sched[0]}: start at a coarser scale "
+                f"(e.g. scales = [{4 * sched[0]}, {2 * sched[0]}, {sched[-1]}]), use init = 'axis', or raise n_outer"
+            )
+            status = min(status, 0)
+            log.warning(message)
     rv, t = fix_gauge(rv, t, geom, center=c, scale=fix_scale)
     calibrated = geom.apply_poses(rv, t)
     emit(stage="reconstruct", what="calibrated")

@@ -71,13 +71,13 @@ that type needs) are required; everything else has the default shown.
     bin = 1                     # bin the projections bin x bin when loading
 
     [calibration]
-    basis = "dirac"             # "dirac" | "constant" | "poly:D" | "fourier:M" | "fourier:M:nodrift" | "spline:N"
+    basis = "fourier:1"         # "dirac" | "constant" | "poly:D" | "fourier:M" | "fourier:M:nodrift" | "spline:N"
     method = "full"             # "full" | "pgd"
     frame = "sample"            # "sample" | "lab"
-    fixed = []                  # parameters held at zero, among "tx","ty","tz","rx","ry","rz"
+    fixed = ["rz"]              # parameters held at zero, among "tx","ty","tz","rx","ry","rz" (rz: the stage's angles are trusted)
     # center = [0.0, 0.0, 0.0]  # centre of the rotation modes [x, y, z] (default: volume centre)
-    scales = [4, 2, 1]          # coarse-graining scales, strictly decreasing (coarse to fine)
-    max_outer = 5               # reconstruction + correlation rounds per scale, at most
+    scales = "auto"             # coarse-graining scales, strictly decreasing (coarse to fine), e.g. [4, 2]; "auto": from the detector size
+    max_outer = 10              # reconstruction + correlation rounds per scale, at most
     tol_px = 0.01               # stop when an update moves sample points by less (detector pixels)
     max_iter = 20               # Jacobian passes per correlation (full identification)
     max_modes = 5               # PGD: modes at most
@@ -87,6 +87,8 @@ that type needs) are required; everything else has the default shown.
     rcond = 1e-6                # eigenvalue ratio below which a direction is unobservable
     fix_scale = true            # cone beam: keep the nominal mean source distance (gauge)
     backend = "auto"            # projector backend
+    oversample = 2              # correlation grid this many times finer than the reconstruction grid
+    init = "auto"               # "auto" | "axis" | "none": axis offset from opposite views first
 
     [output]
     dir = "pdvc_output"         # output folder
@@ -290,13 +292,13 @@ class PreprocessConfig:
 class CalibrationConfig:
     """``[calibration]``: the P-DVC engine and the outer loop."""
 
-    basis: str = "dirac"
+    basis: str = "fourier:1"
     method: str = "full"
     frame: str = "sample"
-    fixed: tuple[str, ...] = ()
+    fixed: tuple[str, ...] = ("rz",)
     center: Optional[tuple[float, float, float]] = None
-    scales: tuple[int, ...] = (4, 2, 1)
-    max_outer: int = 5
+    scales: Union[str, tuple[int, ...]] = "auto"
+    max_outer: int = 10
     tol_px: float = 0.01
     max_iter: int = 20
     max_modes: int = 5
@@ -306,6 +308,8 @@ class CalibrationConfig:
     rcond: float = 1e-6
     fix_scale: bool = True
     backend: str = "auto"
+    oversample: int = 2
+    init: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -674,7 +678,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         )
     method = _choice(t.pop("method", d.method), w + "method", ("full", "pgd"))
     frame = _choice(t.pop("frame", d.frame), w + "frame", ("sample", "lab"))
-    fixed = t.pop("fixed", [])
+    fixed = t.pop("fixed", list(d.fixed))
     if not isinstance(fixed, (list, tuple)):
         raise ConfigError(f"calibration.fixed must be a list of parameter names, got {_got(fixed)}")
     for i, name in enumerate(fixed):
@@ -685,11 +689,14 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         raise ConfigError("calibration.fixed holds all six parameters: nothing would be calibrated")
     center = t.pop("center")
     center = None if center is None else _triple(center, w + "center")
-    scales = t.pop("scales", list(d.scales))
-    if not isinstance(scales, (list, tuple)) or not scales:
+    scales = t.pop("scales", d.scales)
+    if scales == "auto":
+        pass
+    elif not isinstance(scales, (list, tuple)) or not scales:
         raise ConfigError(f"calibration.scales must be a non-empty list of integers, got {_got(scales)}")
-    scales = tuple(_integer(s, f"{w}scales[{i}]", minimum=1) for i, s in enumerate(scales))
-    if any(b >= a for a, b in zip(scales, scales[1:])):
+    else:
+        scales = tuple(_integer(s, f"{w}scales[{i}]", minimum=1) for i, s in enumerate(scales))
+    if scales != "auto" and any(b >= a for a, b in zip(scales, scales[1:])):
         raise ConfigError(f"calibration.scales must be strictly decreasing (coarse to fine), got {list(scales)}")
     out = CalibrationConfig(
         basis=basis.strip().lower(),
@@ -708,6 +715,8 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         rcond=_number(t.pop("rcond", d.rcond), w + "rcond", positive=True, hi=1.0),
         fix_scale=_boolean(t.pop("fix_scale", d.fix_scale), w + "fix_scale"),
         backend=_string(t.pop("backend", d.backend), w + "backend"),
+        oversample=_integer(t.pop("oversample", d.oversample), w + "oversample", minimum=1),
+        init=_choice(t.pop("init", d.init), w + "init", ("auto", "axis", "none")),
     )
     t.finish(_CALIBRATION_KEYS)
     return out

@@ -94,19 +94,18 @@ class OutputWriter:
 
     # -- final outputs ---------------------------------------------------------
     def write(self, result, *, projections, geom_fine, config=None, save_initial_volume=True) -> None:
-        import tifffile
-
         from ._tables import write_motion_csv, write_result_h5
 
         out = self.out
+        oc = getattr(config, "output", None)
+        want = lambda name, default=True: bool(getattr(oc, name, default))  # noqa: E731
+        vol_format = getattr(oc, "volume_format", "tiff")
         atomic_write_npy(out / "geometry.npy", result.geometry.vectors)
         atomic_write_npy(out / "geometry_nominal.npy", result.nominal.vectors)
-        try:
+        if want("exports"):
             from ..io._export import write_exports
 
             write_exports(out, result.geometry, result.vol_geom)
-        except ImportError:  # pragma: no cover - exports module always present in a release
-            log.warning("geometry exports unavailable")
 
         eng = result.engine
         n = result.nominal.n_views
@@ -125,11 +124,9 @@ class OutputWriter:
             snr_before=result.snr_before,
             snr_after=result.snr_after,
         )
-        for name, vol in (("volume.tif", result.volume), ("volume_initial.tif", result.volume_initial if save_initial_volume else None)):
-            if vol is None:
-                continue
-            with atomic_path(out / name) as tmp:
-                tifffile.imwrite(tmp, np.asarray(vol, np.float32), metadata={"axes": "ZYX"})
+        for stem, vol in (("volume", result.volume if want("save_final_volume") else None), ("volume_initial", result.volume_initial if save_initial_volume else None)):
+            if vol is not None:
+                _write_volume(out, stem, np.asarray(vol, np.float32), vol_format, result.vol_geom)
         tree = _result_tree(result, params, params_lab, angles, config)
         write_result_h5(out / "result.h5", tree)
         if config is not None:
@@ -138,7 +135,8 @@ class OutputWriter:
             write_config(out / "config.toml", config)
         from ._calibration import build_report
 
-        build_report(out, result, projections=projections, geom_fine=geom_fine, angles=angles, params_lab=params_lab)
+        if want("report"):
+            build_report(out, result, projections=projections, geom_fine=geom_fine, angles=angles, params_lab=params_lab)
         self._run_file(
             "complete",
             gauge=result.gauge,
@@ -149,6 +147,26 @@ class OutputWriter:
             snr_after_db=float(np.mean(result.snr_after)),
         )
         log.info("outputs written to %s", out)
+
+
+def _write_volume(out: Path, stem: str, vol: np.ndarray, fmt: str, vol_geom) -> None:
+    """``<stem>.tif`` (float32, ZYX), ``.npy`` or ``.h5`` (dataset ``volume`` with its grid)."""
+    if fmt == "npy":
+        atomic_write_npy(out / f"{stem}.npy", vol)
+    elif fmt == "hdf5":
+        import h5py
+
+        with atomic_path(out / f"{stem}.h5") as tmp:
+            with h5py.File(tmp, "w") as f:
+                d = f.create_dataset("volume", data=vol, chunks=True, compression="gzip")
+                d.attrs["axes"] = "ZYX"
+                d.attrs["voxel_size_zyx"] = np.asarray(vol_geom.voxel_size, float)
+                d.attrs["offset_xyz"] = np.asarray(vol_geom.offset, float)
+    else:
+        import tifffile
+
+        with atomic_path(out / f"{stem}.tif") as tmp:
+            tifffile.imwrite(tmp, vol, metadata={"axes": "ZYX"})
 
 
 def _params(rv, t, center):
