@@ -412,7 +412,12 @@ def self_calibrate(
     history: list = []
     res = None
     status = 0
-    stage = "warmup" if warmup > 0 else "model"
+    # The warm-up guards free rotations against the first, motion-blurred
+    # reconstructions; a model without free rotations needs none. In the lab
+    # frame it also holds the translations the user fixed.
+    free_rot = not set(_ROTATIONS) <= set(fixed)
+    warm_fixed = _ROTATIONS + (tuple(x for x in fixed if x not in _ROTATIONS) if frame == "lab" else ())
+    stage = "warmup" if warmup > 0 and free_rot else "model"
     n_warm = 0
     best = None  # (chi_before, rv, t) in the model stage
     X: list = []
@@ -420,7 +425,7 @@ def self_calibrate(
     for it in range(n_outer):
         vol = rec(p, vg_c, geom.apply_poses(rv, t))
         if stage == "warmup":
-            kw = dict(basis=wb, frame="lab", fixed=_ROTATIONS, method="full")
+            kw = dict(basis=wb, frame="lab", fixed=warm_fixed, method="full")
         else:
             kw = dict(basis=basis, frame=frame, fixed=tuple(fixed), method=method)
         res = correlate(
