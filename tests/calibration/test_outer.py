@@ -102,7 +102,7 @@ def test_result_structure(small_case, small_run):
     assert out.status in OUTER_STATUS and out.message == OUTER_STATUS[out.status]
     assert 1 <= out.n_outer <= 5
     assert all(set(h) == HISTORY_KEYS for h in out.history)
-    assert out.history[0]["stage"] == "warmup"
+    assert out.history[0]["stage"] == "model"  # no rotation free (TRANSLATIONS): the warm-up is skipped
     assert [h["iteration"] for h in out.history] == list(range(out.n_outer))
     assert seen == [dict(h) for h in out.history]  # the callback saw every iteration
     assert out.result.basis is not None  # the last CorrelationResult
@@ -178,3 +178,10 @@ def test_initial_poses_are_used(small_case):
     )
     # started at the truth, the first reconstruction is already consistent
     assert out.history[0]["chi_before"] < 1.5
+
+
+def test_free_rotations_start_with_the_translation_warmup(small_case):
+    """Rotations free (default: rz fixed only): round 0 measures translations only, in the lab frame."""
+    c = small_case
+    out = self_calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, n_outer=2, oversample=1, tol_px=1e-9)
+    assert [h["stage"] for h in out.history] == ["warmup", "model"]
