@@ -52,6 +52,8 @@ def test_cli_simulate_inspect_calibrate_reconstruct(simulated, tmp_path, capsys)
     assert "axis offset" in text
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "complete" and "gauge" in run["gauge"]
+    log_text = (out / "pdvc.log").read_text()
+    assert "calibration done" in log_text and "INFO" in log_text
     for name in ("geometry.npy", "geometry_nominal.npy", "geometry_astra.json", "geometry_tigre.json", "motion.csv",
                  "result.h5", "volume.tif", "report.html", "config.toml", "snr_per_view.png", "residuals.png"):
         assert (out / name).is_file(), name

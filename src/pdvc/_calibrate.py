@@ -59,11 +59,25 @@ def calibrate(
     from .report._outputs import OutputWriter
 
     writer = OutputWriter(out_dir, overwrite=overwrite, resume=resume)
-    state = writer.load_checkpoint() if resume else None
-    if resume and state is None:
-        log.warning("no checkpoint in %s: starting from the beginning", writer.out)
-    res = _calibrate(projections, geom, vol_geom, checkpoint=lambda st: writer.save_checkpoint(**st), resume=state, **options)
-    s = int(res.scales[-1])
-    p_fine = np.asarray(projections, np.float32) if s == 1 else res.projections_fine
-    writer.write(res, projections=p_fine, geom_fine=geom if s == 1 else geom.binned(s), config=config, save_initial_volume=save_initial_volume)
+    # the run's log (INFO and above of every pdvc module), appended on --resume
+    handler = logging.FileHandler(writer.out / "pdvc.log", mode="a" if resume else "w", encoding="utf-8")
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("pdvc")
+    old_level = root.level
+    root.addHandler(handler)
+    if root.getEffectiveLevel() > logging.INFO:
+        root.setLevel(logging.INFO)
+    try:
+        state = writer.load_checkpoint() if resume else None
+        if resume and state is None:
+            log.warning("no checkpoint in %s: starting from the beginning", writer.out)
+        res = _calibrate(projections, geom, vol_geom, checkpoint=lambda st: writer.save_checkpoint(**st), resume=state, **options)
+        s = int(res.scales[-1])
+        p_fine = np.asarray(projections, np.float32) if s == 1 else res.projections_fine
+        writer.write(res, projections=p_fine, geom_fine=geom if s == 1 else geom.binned(s), config=config, save_initial_volume=save_initial_volume)
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old_level)
+        handler.close()
     return res

@@ -265,7 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    level = logging.INFO if args.verbose else logging.WARNING
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    for h in logging.getLogger().handlers:  # the output folder's pdvc.log gets INFO; the terminal only this
+        h.setLevel(level)
     if getattr(args, "size", 16) < 16 or getattr(args, "views", 16) < 8:
         parser.error("--size must be >= 16 and --views >= 8")
     try:

@@ -63,7 +63,7 @@ def test_minimal_file_gets_defaults_and_absolute_paths(tmp_path):
     assert g.pixel == (0.2, 0.1) and g.det_offset == (0.0, 0.0)
     assert g.angles == "auto"
     assert cfg.volume.offset == (0.0, 0.0, 0.0) and cfg.volume.shape is None
-    assert cfg.calibration.scales == (4, 2, 1) and cfg.calibration.method == "full"
+    assert cfg.calibration.scales == "auto" and cfg.calibration.fixed == ("rz",) and cfg.calibration.basis == "fourier:1" and cfg.calibration.method == "full"
     assert cfg.output.dir == str(tmp_path / "pdvc_output")
     assert cfg.source == str(p.resolve())
 
