@@ -13,5 +13,6 @@ projection matrix.
 
 from ._fbp import fbp, fdk
 from ._filters import FILTERS, ramp_filter_response
+from ._iterative import cgls
 
-__all__ = ["fdk", "fbp", "ramp_filter_response", "FILTERS"]
+__all__ = ["fdk", "fbp", "cgls", "ramp_filter_response", "FILTERS"]
