@@ -111,6 +111,28 @@ def test_interrupted_run_leaves_whole_files_and_resumes(simulated, tmp_path):
     assert json.loads((out / "run.json").read_text())["status"] == "complete"
 
 
+def test_interrupted_within_a_scale_resumes_after_the_last_round(simulated, tmp_path):
+    proj = np.load(simulated / "projections.npy")
+    geom = pdvc.VectorGeometry(np.load(simulated / "geometry_nominal.npy"), proj.shape[1:], "cone")
+    vg = pdvc.VolumeGeometry((32, 32, 32))
+    out = tmp_path / "run"
+
+    def stop_after_second_round(info):
+        if info.get("stage") == "outer" and info.get("iteration") == 1:
+            raise KeyboardInterrupt
+
+    opts = dict(scales=(1,), n_outer=4, tol_px=1e-9, oversample=1)
+    with pytest.raises(KeyboardInterrupt):
+        pdvc.calibrate(proj, geom, vg, out_dir=out, progress=stop_after_second_round, **opts)
+    with np.load(out / "checkpoint.npz") as z:
+        assert int(z["rounds_done"]) == 2 and int(z["scale_index"]) == 0
+    seen = []
+    res = pdvc.calibrate(proj, geom, vg, out_dir=out, resume=True, progress=seen.append, **opts)
+    rounds = [s for s in seen if s.get("stage") == "outer"]
+    assert len(rounds) <= 2  # only the rounds left of n_outer = 4
+    assert len(res.history) == 2 + len(rounds)
+
+
 def test_pipeline_bad_input_is_named(simulated):
     proj = np.load(simulated / "projections.npy")
     geom = pdvc.VectorGeometry(np.load(simulated / "geometry_nominal.npy"), proj.shape[1:], "cone")

@@ -39,7 +39,7 @@ def calibrate(
     out_dir : path, optional
         Output folder (layout in :mod:`pdvc.report._outputs`): refused when
         not empty unless ``overwrite`` or ``resume``. A checkpoint is written
-        after every scale; ``run.json`` says "complete" only at the end.
+        after every outer iteration; ``run.json`` says "complete" only at the end.
     resume : bool
         Continue an interrupted run from the checkpoint in ``out_dir``.
     config : Config or dict, optional

@@ -304,6 +304,7 @@ def self_calibrate(
     angles=None,
     times=None,
     callback: Optional[Callable[[dict], object]] = None,
+    checkpoint: Optional[Callable[[np.ndarray, np.ndarray, list], object]] = None,
     **correlate_options,
 ) -> OuterResult:
     """Calibrate the per-view geometry by alternating reconstruction and P-DVC.
@@ -360,6 +361,10 @@ def self_calibrate(
         geometry, times = view order).
     callback : callable, optional
         Called with the history dict after every outer iteration.
+    checkpoint : callable, optional
+        ``checkpoint(rotvecs, translations, history)`` after every outer
+        iteration, with the poses the next one starts from (to save them:
+        an interrupted run resumes from there).
     **correlate_options
         Passed to :func:`pdvc.correlation.correlate` (``max_iter`` defaults
         to 30 here, ``max_modes``, ``rcond``, ...).
@@ -484,6 +489,8 @@ def self_calibrate(
             "outer %d (%s): chi %.5g -> %.5g, increment %.3g px%s",
             it, stage, chi_before, entry["chi_after"], inc, " (accelerated)" if accelerated else "",
         )
+        if checkpoint is not None:  # saved before anything is reported: a Ctrl-C in a callback loses no round
+            checkpoint(rv.copy(), t.copy(), [dict(h) for h in history])
         if callback is not None:
             callback(dict(entry))
         if stage == "warmup":

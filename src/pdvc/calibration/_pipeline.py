@@ -232,8 +232,9 @@ def calibrate(
     weights : (n_rows, n_cols) array, optional
         Detector ROI / weights at full resolution.
     checkpoint : callable, optional
-        Called after every scale with a dict (rotvecs, translations,
-        history, scale_index, offset_px) — the state ``resume`` accepts.
+        Called after every outer iteration and every scale with a dict
+        (rotvecs, translations, history, scale_index, rounds_done,
+        offset_px) — the state ``resume`` accepts.
     resume : dict, optional
         A state given to ``checkpoint`` by an interrupted run: continue it.
     progress : callable, optional
@@ -279,6 +280,7 @@ def calibrate(
     t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
     history: list = []
     start_scale_index = 0
+    rounds_done = 0  # outer rounds already done at start_scale_index (resume)
     offset_px = None
     if resume is not None:
         ck = resume
@@ -286,6 +288,7 @@ def calibrate(
             rv = np.array(ck["rotvecs"], float).reshape(n, 3)
             t = np.array(ck["translations"], float).reshape(n, 3)
             history, start_scale_index, offset_px = list(ck["history"]), int(ck["scale_index"]), ck["offset_px"]
+            rounds_done = int(ck.get("rounds_done", 0))
             log.info("resuming from checkpoint: scale index %d, %d outer iterations done", start_scale_index, len(history))
             emit(stage="resume", scale=sched[min(start_scale_index, len(sched) - 1)], iteration=len(history))
 
@@ -335,23 +338,38 @@ def calibrate(
             return history_entry
 
         emit(stage="scale", scale=s, det_shape=g_s.det_shape, volume=vg_s.shape)
-        out = self_calibrate(
+        done_before = rounds_done if si == start_scale_index else 0
+        prior = [dict(h) for h in history]
+
+        def round_checkpoint(rv_k, t_k, hist_k, si=si, s=s, done_before=done_before, prior=prior):
+            if checkpoint is not None:
+                entries = prior + [dict(h, scale=s) for h in hist_k]
+                checkpoint(dict(rotvecs=rv_k, translations=t_k, history=entries, scale_index=si,
+                                rounds_done=done_before + len(hist_k), offset_px=offset_px))
+
+        if done_before >= n_outer:
+            rounds_left = 0
+        else:
+            rounds_left = n_outer - done_before
+        out = None if rounds_left == 0 else self_calibrate(
             p_s, g_s, vg_s,
             initial_rotvecs=rv, initial_translations=t,
             oversample=oversample, basis=basis, method=method, frame=frame, fixed=tuple(fixed),
-            n_outer=n_outer, tol_px=tol_px / s, weights=w_s, times=times, fix_scale=fix_scale,
+            n_outer=rounds_left, tol_px=tol_px / s, weights=w_s, times=times, fix_scale=fix_scale,
+            checkpoint=round_checkpoint,
             noise_variance=gamma2 * coarse_noise_factor(s),
             callback=outer_cb, **correlate_options,
         )
-        rv, t = out.rotvecs, out.translations
-        for h in out.history:
-            entry = dict(h)
-            entry["scale"] = s
-            history.append(entry)
-        last = out
-        status, message = out.status, out.message
+        if out is not None:
+            rv, t = out.rotvecs, out.translations
+            for h in out.history:
+                entry = dict(h)
+                entry["scale"] = s
+                history.append(entry)
+            last = out
+            status, message = out.status, out.message
         if checkpoint is not None:
-            checkpoint(dict(rotvecs=rv, translations=t, history=list(history), scale_index=si + 1, offset_px=offset_px))
+            checkpoint(dict(rotvecs=rv, translations=t, history=list(history), scale_index=si + 1, rounds_done=0, offset_px=offset_px))
 
     # Too large for the linearisation? Two signs, either is enough (no coarse
     # initialisation having placed the axis first): the last outer iteration still

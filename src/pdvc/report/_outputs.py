@@ -66,7 +66,7 @@ class OutputWriter:
         info.update(extra)
         atomic_write_text(self.out / RUN_FILE, json.dumps(info, indent=2, default=str) + "\n")
 
-    def save_checkpoint(self, rotvecs, translations, history, scale_index: int, offset_px) -> None:
+    def save_checkpoint(self, rotvecs, translations, history, scale_index: int, offset_px, rounds_done: int = 0) -> None:
         with atomic_path(self.out / CHECKPOINT) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(
@@ -75,6 +75,7 @@ class OutputWriter:
                     translations=np.asarray(translations, float),
                     history=np.array(json.dumps(list(history), default=float)),
                     scale_index=np.array(int(scale_index)),
+                    rounds_done=np.array(int(rounds_done)),
                     offset_px=np.array(np.nan if offset_px is None else float(offset_px)),
                 )
 
@@ -89,6 +90,7 @@ class OutputWriter:
                 translations=z["translations"].copy(),
                 history=json.loads(str(z["history"])),
                 scale_index=int(z["scale_index"]),
+                rounds_done=int(z["rounds_done"]) if "rounds_done" in z else 0,
                 offset_px=None if np.isnan(off) else off,
             )
 
