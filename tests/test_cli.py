@@ -185,3 +185,26 @@ def test_cli_missing_config_is_a_clear_error(tmp_path, capsys):
     assert main(["calibrate", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert "nope.toml" in err
+
+
+def test_noise_from_counts_matches_the_simulated_photon_statistics(tmp_path):
+    """Raw counts with flats (gain 1): γ² from Poisson statistics ≈ the empirical variance of the noise."""
+    from pdvc._inputs import load_scan
+    from pdvc.simulate import cast_iron_phantom, simulate_scan
+
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    geom = pdvc.circular_cone(angles, sod=200.0, odd=100.0, det_shape=(20, 24), pixel=1.5)
+    scan = simulate_scan(cast_iron_phantom(6.0, 12.0, n_nodules=10, seed=1), geom, i0=5e3, seed=2, supersampling=1)
+    np.save(tmp_path / "counts.npy", scan.counts.astype(np.float32))
+    np.save(tmp_path / "flats.npy", scan.flats.astype(np.float32))
+    np.save(tmp_path / "darks.npy", scan.darks.astype(np.float32))
+    (tmp_path / "c.toml").write_text(
+        '[data]\npath = "counts.npy"\nflats = "flats.npy"\ndarks = "darks.npy"\nis_raw = true\n'
+        '[geometry]\ntype = "cone"\nsod = 200.0\nodd = 100.0\npixel = 1.5\nangles = { start = 0, stop = 360, count = 24 }\n'
+        '[volume]\nshape = [16, 16, 16]\nvoxel_size = 1.0\n[calibration]\nnoise = "counts"\n'
+    )
+    s = load_scan(tmp_path / "c.toml")
+    g2 = s.calibration_options["noise_variance"]
+    empirical = float(np.var(s.projections - scan.clean))
+    assert g2 == pytest.approx(empirical, rel=0.15)
+    assert g2 == pytest.approx(float(np.mean(scan.noise_variance())), rel=0.15)

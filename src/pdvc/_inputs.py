@@ -64,6 +64,24 @@ def calibration_options(cal) -> dict:
     return opts
 
 
+def counts_noise_variance(raw, p) -> float:
+    """γ² from the Poisson statistics of raw counts with flats (photon-counting, gain 1).
+
+    ``i0`` is the mean of flat − dark; the per-pixel variance of each line
+    integral is :func:`pdvc.correlation.poisson_variance` (projection and
+    averaged-flat terms), and γ² is its mean over the data.
+    """
+    from .correlation import poisson_variance
+
+    if not raw.is_raw or raw.flats is None:
+        raise PdvcError("calibration.noise = 'counts' needs raw counts with flats ([data] flats or a file that holds them)")
+    dark = 0.0 if raw.darks is None else raw.darks.mean(axis=0)
+    i0 = float(np.mean(raw.flats.mean(axis=0) - dark))
+    if not i0 > 0:
+        raise PdvcError(f"calibration.noise = 'counts': the mean flat minus dark must be positive, got {i0:g}")
+    return float(np.mean(poisson_variance(p, i0=i0, n_flats=int(raw.flats.shape[0]))))
+
+
 def _vendor(cfg):
     if cfg.geometry.type in ("nikon", "skyscan"):
         from .io import _vendor as vendor
@@ -99,6 +117,13 @@ def load_scan(config, *, out_dir=None) -> Scan:
     n_clipped = int(getattr(rep, "n_clipped", 0))
     if n_clipped:
         notes.append(f"normalisation clipped {n_clipped} non-positive or tiny transmissions (clip_min {pp.clip_min:g})")
+    gamma2_counts = None
+    if cfg.calibration.noise == "counts":  # on the full-resolution line integrals, before binning
+        gamma2_counts = counts_noise_variance(raw, p)
+        if pp.bin > 1:
+            from .correlation import coarse_noise_factor
+
+            gamma2_counts *= coarse_noise_factor(int(pp.bin))
     if pp.beam_hardening is not None:
         p = beam_hardening(p, pp.beam_hardening)
         notes.append(f"beam-hardening polynomial {list(pp.beam_hardening)}")
@@ -125,6 +150,10 @@ def load_scan(config, *, out_dir=None) -> Scan:
     frac = check_coverage(geom, vol_geom)
     if frac < 0.999:
         notes.append(f"warning: only {100 * frac:.0f}% of the volume box projects onto the detector at the worst view")
+    cal_opts = calibration_options(cfg.calibration)
+    if gamma2_counts is not None:
+        cal_opts["noise_variance"] = gamma2_counts
+        notes.append(f"noise variance from the counts (Poisson, gain 1): {gamma2_counts:.3g}")
     resolved = cfg.resolved(n_views=p.shape[0], det_shape=raw.det_shape if pp.roi_rows is None and pp.roi_cols is None and pp.bin == 1 else None, vol_geom=vol_geom)
     if out_dir is not None:
         resolved = dataclasses.replace(resolved, output=dataclasses.replace(resolved.output, dir=str(out_dir)))
@@ -133,7 +162,7 @@ def load_scan(config, *, out_dir=None) -> Scan:
         geometry=geom,
         vol_geom=vol_geom,
         weights=None,
-        calibration_options=calibration_options(cfg.calibration),
+        calibration_options=cal_opts,
         config=resolved,
         notes=tuple(notes),
         raw=raw,

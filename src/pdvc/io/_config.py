@@ -89,6 +89,8 @@ that type needs) are required; everything else has the default shown.
     backend = "auto"            # projector backend
     oversample = 2              # correlation grid this many times finer than the reconstruction grid
     init = "auto"               # "auto" | "axis" | "none": axis offset from opposite views first
+    noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
+                                # (Poisson statistics of raw counts with flats, photon-counting gain 1)
 
     [output]
     dir = "pdvc_output"         # output folder
@@ -310,6 +312,7 @@ class CalibrationConfig:
     backend: str = "auto"
     oversample: int = 2
     init: str = "auto"
+    noise: str = "image"
 
 
 @dataclass(frozen=True)
@@ -717,6 +720,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         backend=_string(t.pop("backend", d.backend), w + "backend"),
         oversample=_integer(t.pop("oversample", d.oversample), w + "oversample", minimum=1),
         init=_choice(t.pop("init", d.init), w + "init", ("auto", "axis", "none")),
+        noise=_choice(t.pop("noise", d.noise), w + "noise", ("image", "counts")),
     )
     t.finish(_CALIBRATION_KEYS)
     return out
