@@ -45,6 +45,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
+from .._arrays import frozen, per_view_vectors
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -240,20 +242,10 @@ class MotionSummary:
 
 
 def _frozen(a) -> np.ndarray:
-    arr = np.array(a, dtype=np.float64)
-    arr.setflags(write=False)
-    return arr
+    return frozen(np.array(a, dtype=np.float64))
 
 
-def _per_view(value, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    try:
-        arr = np.broadcast_to(arr, (n, 3)).copy()
-    except ValueError:
-        raise ShapeError(f"{name} must have shape ({n}, 3) or (3,) (one row per view), got {np.shape(value)}") from None
-    if not np.all(np.isfinite(arr)):
-        raise GeometryError(f"{name} must be finite")
-    return arr
+_per_view = per_view_vectors
 
 
 def _vector(value, n: int, name: str, unit: str) -> np.ndarray:

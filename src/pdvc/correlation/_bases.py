@@ -35,6 +35,8 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
+
+from .._arrays import frozen
 from scipy.interpolate import BSpline
 
 from ..errors import InputTypeError, PdvcError, ShapeError
@@ -57,9 +59,7 @@ class BasisError(PdvcError, ValueError):
     """A temporal basis that is malformed or that the views cannot determine."""
 
 
-def _frozen(arr: np.ndarray) -> np.ndarray:
-    arr.setflags(write=False)
-    return arr
+_frozen = frozen
 
 
 @dataclass(frozen=True, eq=False)

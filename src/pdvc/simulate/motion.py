@@ -28,6 +28,8 @@ direct analogue. Angles are radians; lengths in the user's length unit.
 from __future__ import annotations
 
 import numpy as np
+
+from .._arrays import per_view_vectors
 from scipy.spatial.transform import Rotation
 
 from ..errors import GeometryError, ShapeError
@@ -54,15 +56,7 @@ def _angles(angles, name: str = "angles") -> np.ndarray:
     return a
 
 
-def _per_view(value, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    try:
-        arr = np.broadcast_to(arr, (n, 3)).copy()
-    except ValueError:
-        raise ShapeError(f"{name} must have shape ({n}, 3) or (3,), got {np.shape(value)}") from None
-    if not np.all(np.isfinite(arr)):
-        raise GeometryError(f"{name} must be finite")
-    return arr
+_per_view = per_view_vectors
 
 
 def _table(angles: np.ndarray) -> Rotation:

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._arrays import frozen
+
 from ..errors import InputTypeError, ShapeError
 from ..geometry import VectorGeometry
 from ._checks import SimulationError, as_int, as_positive
@@ -33,9 +35,7 @@ from .phantoms import EllipsoidPhantom
 __all__ = ["SimulatedScan", "simulate_scan", "add_poisson_noise"]
 
 
-def _frozen(arr: np.ndarray) -> np.ndarray:
-    arr.setflags(write=False)
-    return arr
+_frozen = frozen
 
 
 @dataclass(frozen=True, eq=False)
