@@ -45,11 +45,10 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-
-from .._arrays import frozen, per_view_vectors
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from .._arrays import frozen, per_view_vectors
 from ..correlation import lab_frames
 from ..errors import GeometryError, InputTypeError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry

@@ -35,10 +35,9 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
-
-from .._arrays import frozen
 from scipy.interpolate import BSpline
 
+from .._arrays import frozen
 from ..errors import InputTypeError, PdvcError, ShapeError
 
 __all__ = [

@@ -28,10 +28,9 @@ direct analogue. Angles are radians; lengths in the user's length unit.
 from __future__ import annotations
 
 import numpy as np
-
-from .._arrays import per_view_vectors
 from scipy.spatial.transform import Rotation
 
+from .._arrays import per_view_vectors
 from ..errors import GeometryError, ShapeError
 from ..geometry import compose_poses
 from ._checks import as_finite, as_vec3

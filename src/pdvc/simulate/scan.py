@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._arrays import frozen
-
 from ..errors import InputTypeError, ShapeError
 from ..geometry import VectorGeometry
 from ._checks import SimulationError, as_int, as_positive
