@@ -181,10 +181,9 @@ def inspect_scan(config) -> tuple[list, list]:
     lines.append(f"config {config}")
     lines.extend(scan.notes)
     lines.append(f"geometry: {g.kind} beam, {g.n_views} views, detector {g.det_shape[0]}x{g.det_shape[1]}")
-    from .correlation import lab_frames
+    from .correlation import view_angles
 
-    F = lab_frames(g)
-    ang = np.rad2deg(np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0])))
+    ang = np.rad2deg(view_angles(g))
     span = float(ang.max() - ang.min()) if g.n_views > 1 else 0.0
     lines.append(f"angles: {ang[0]:.2f} .. {ang[-1]:.2f} deg (span {span:.1f} deg, mean step {span / max(g.n_views - 1, 1):.3f} deg)")
     if g.kind == "cone":

@@ -123,7 +123,7 @@ from ..correlation import (
     polynomial_basis,
 )
 from ..correlation._engine import _params_to_rt, _rt_to_params
-from ..correlation._frames import lab_frames
+from ..correlation._frames import view_angles
 from ..errors import PdvcError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry, fix_gauge, sample_points
 from ..recon import fbp, fdk
@@ -386,8 +386,7 @@ def self_calibrate(
     radius = 0.5 * float(np.min(vol_geom.extent_xyz))
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     if angles is None:
-        F = lab_frames(geom)
-        angles = np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0]))
+        angles = view_angles(geom)
     wb = drift_basis(angles, times) if isinstance(warmup_basis, str) and warmup_basis == "drift" else warmup_basis
     opts = dict(max_iter=30)
     opts.update(correlate_options)

@@ -6,7 +6,7 @@
 
 from ._bases import TemporalBasis, bspline_basis, custom_basis, dirac_basis, fourier_basis, make_basis, polynomial_basis
 from ._engine import STATUS, CorrelationError, CorrelationResult, Mode, Observability, correlate
-from ._frames import lab_frames, lab_to_sample_map
+from ._frames import lab_frames, lab_to_sample_map, view_angles
 from ._metrics import shannon_entropy, snr_db
 from ._noise import estimate_noise_variance, poisson_variance
 from ._roi import cone_artifact_rows, detector_weights
@@ -28,6 +28,7 @@ __all__ = [
     "custom_basis",
     "lab_frames",
     "lab_to_sample_map",
+    "view_angles",
     "estimate_noise_variance",
     "poisson_variance",
     "snr_db",

@@ -29,7 +29,7 @@ from ..errors import PdvcError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry, compose_poses, sample_points
 from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
 from ._bases import TemporalBasis, make_basis
-from ._frames import lab_frames, lab_to_sample_map
+from ._frames import lab_frames, lab_to_sample_map, view_angles
 from ._noise import estimate_noise_variance
 from ._scales import coarse_grain, coarse_noise_factor, coarse_volume
 
@@ -479,8 +479,7 @@ def correlate(
         raise CorrelationError(f"tol_px must be positive, got {tol_px!r}")
 
     if angles is None:
-        F = lab_frames(geom)
-        angles = np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0]))
+        angles = view_angles(geom)
     basis_obj = make_basis(basis, angles=np.asarray(angles, float), times=times) if not isinstance(basis, TemporalBasis) else basis
     if basis_obj.n_views != n:
         raise CorrelationError(f"basis must have {n} rows (views), got {basis_obj.n_views}")

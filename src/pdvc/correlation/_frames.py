@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import GeometryError, InputTypeError, ShapeError
 from ..geometry import VectorGeometry
 
-__all__ = ["lab_frames", "lab_to_sample_map", "to_lab", "params_to_sample", "params_to_lab"]
+__all__ = ["lab_frames", "lab_to_sample_map", "to_lab", "params_to_sample", "params_to_lab", "view_angles"]
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
@@ -207,3 +207,9 @@ def params_to_lab(p_sample, T) -> np.ndarray:
     if p.ndim == 1 and t.ndim == 3:
         p = np.broadcast_to(p, (t.shape[0], 6))
     return np.linalg.solve(t, p[..., None])[..., 0]
+
+
+def view_angles(geom: VectorGeometry) -> np.ndarray:
+    """Rotation angle of every view (rad, unwrapped in view order) read off its lab frame."""
+    F = lab_frames(geom)
+    return np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0]))

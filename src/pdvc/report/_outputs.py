@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..correlation import lab_frames
+from ..correlation import lab_frames, view_angles
+from ..correlation._engine import _rt_to_params
 from ..io import atomic_path, atomic_write_npy, atomic_write_text, prepare_output_dir
 
 log = logging.getLogger("pdvc.report")
@@ -112,8 +113,8 @@ class OutputWriter:
         eng = result.engine
         n = result.nominal.n_views
         F = lab_frames(result.nominal)
-        angles = np.unwrap(np.arctan2(F[:, 1, 0], F[:, 0, 0]))
-        params = _params(result.rotvecs, result.translations, result.vol_geom.offset)
+        angles = view_angles(result.nominal)
+        params = _rt_to_params(result.rotvecs, result.translations, np.asarray(result.vol_geom.offset, float))
         params_lab = np.hstack([np.einsum("kji,kj->ki", F, params[:, :3]), np.einsum("kji,kj->ki", F, params[:, 3:])])
         times = np.arange(n, dtype=float)
         write_motion_csv(
@@ -169,14 +170,6 @@ def _write_volume(out: Path, stem: str, vol: np.ndarray, fmt: str, vol_geom) -> 
 
         with atomic_path(out / f"{stem}.tif") as tmp:
             tifffile.imwrite(tmp, vol, metadata={"axes": "ZYX"})
-
-
-def _params(rv, t, center):
-    from scipy.spatial.transform import Rotation
-
-    c = np.asarray(center, float)
-    tau = t - c + Rotation.from_rotvec(rv).apply(c)
-    return np.hstack([tau, rv])
 
 
 def _result_tree(result, params, params_lab, angles, config) -> dict:
