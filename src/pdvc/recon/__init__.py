@@ -13,6 +13,6 @@ projection matrix.
 
 from ._fbp import fbp, fdk
 from ._filters import FILTERS, ramp_filter_response
-from ._iterative import cgls
+from ._iterative import cgls, nonneg_ls
 
-__all__ = ["fdk", "fbp", "cgls", "ramp_filter_response", "FILTERS"]
+__all__ = ["fdk", "fbp", "cgls", "nonneg_ls", "ramp_filter_response", "FILTERS"]
