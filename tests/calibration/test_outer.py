@@ -13,8 +13,8 @@ from pdvc.recon import fdk
 from tests.correlation.cases import make_case
 
 HISTORY_KEYS = {
-    "iteration", "stage", "chi_before", "chi_after", "snr_before", "snr", "increment_px", "increment_max_px",
-    "n_iter", "accelerated",
+    "iteration", "stage", "chi_before", "chi_after", "snr_before", "snr", "entropy", "increment_px",
+    "increment_max_px", "n_iter", "accelerated",
 }
 
 
@@ -61,6 +61,10 @@ def test_drift_basis_falls_back_on_few_views():
         (dict(warmup=-1), OuterError),
         (dict(oversample=1.5), OuterError),
         (dict(tol_px=0.0), OuterError),
+        (dict(guard="sharpness"), OuterError),
+        (dict(entropy_tol=0.0), OuterError),
+        (dict(reconstruct="sirt"), OuterError),
+        (dict(reconstruct=3), OuterError),
     ],
 )
 def test_bad_options_are_rejected(small_case, kw, err):
@@ -157,6 +161,45 @@ def test_rising_data_inconsistency_stops_and_returns_the_best_poses(small_case):
     best = int(np.argmin(chis))
     # the poses returned are those the best reconstruction was made with
     assert out.geometry == calls[best]
+
+
+def test_rising_entropy_stops_and_returns_the_poses_before_the_last_iteration(small_case):
+    # a reconstruction that gets noisier at every call: its entropy rises in the model stage
+    c = small_case
+    calls = []
+    rng = np.random.default_rng(0)
+
+    def noisier(p, vg, g):
+        calls.append(g)
+        vol = fdk(p, vg, g)
+        return vol + rng.normal(0.0, 0.02 * (len(calls) - 1) * float(vol.max()), vol.shape).astype(np.float32)
+
+    out = self_calibrate(
+        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct=noisier, guard="entropy", warmup=0,
+        n_outer=6, stall_ratio=None, tol_px=1e-9, **TRANSLATIONS,
+    )
+    assert out.status == 4 and out.success, out.message
+    ent = [h["entropy"] for h in out.history]
+    assert all(np.isfinite(ent)) and len(out.history) >= 1
+    # the guard looks before each iteration: the geometry returned is the one the last
+    # iteration started from, i.e. before the poses whose reconstruction tripped the guard
+    starts = calls[::2]  # each iteration: guard reconstruction on vol_geom, then the correlation volume
+    assert out.geometry == starts[len(out.history) - 1]
+
+
+def test_entropy_is_nan_without_the_guard(small_case, small_run):
+    out, _ = small_run
+    assert all(np.isnan(h["entropy"]) for h in out.history)
+
+
+def test_nonneg_ls_reconstruction_in_the_loop(small_case):
+    c = small_case
+    out = self_calibrate(
+        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct="nonneg_ls", warmup=0, n_outer=2,
+        **TRANSLATIONS,
+    )
+    assert reprojection_error(out.geometry, c.scan.true_geometry, c.points).rms < 0.15
+    assert out.volume.shape == c.vol_geom.shape
 
 
 def test_anderson_acceleration_runs_and_is_flagged(small_case):

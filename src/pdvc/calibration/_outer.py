@@ -121,14 +121,17 @@ from ..correlation import (
     estimate_noise_variance,
     fourier_basis,
     polynomial_basis,
+    shannon_entropy,
 )
 from ..correlation._engine import _params_to_rt, _rt_to_params
 from ..correlation._frames import view_angles
 from ..errors import PdvcError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry, fix_gauge, sample_points
-from ..recon import fbp, fdk
+from ..recon import fbp, fdk, nonneg_ls
 
-__all__ = ["self_calibrate", "OuterResult", "OuterError", "OUTER_STATUS", "drift_basis", "refined_grid"]
+__all__ = [
+    "self_calibrate", "OuterResult", "OuterError", "OUTER_STATUS", "RECONSTRUCTORS", "drift_basis", "refined_grid",
+]
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +142,8 @@ OUTER_STATUS = {
     2: "stopped: the data consistency of the reconstruction got worse (diverging); the best poses are returned",
     3: "stopped: the outer iterations no longer contract (what still moves is weakly determined); "
     "the poses before the last iteration are returned",
+    4: "stopped: the entropy of the reconstruction rose (the data consistency is walking along weakly "
+    "determined modes); the poses before the last iteration are returned",
 }
 
 _ROTATIONS = ("rx", "ry", "rz")
@@ -168,7 +173,9 @@ class OuterResult:
         (``"warmup"`` or ``"model"``), ``chi_before`` (χ of the fresh
         reconstruction at the poses the iteration started from),
         ``chi_after``, ``snr_before``, ``snr`` (overall SNR in dB before
-        and after the correlation), ``increment_px`` and
+        and after the correlation), ``entropy`` (bits, of the analytic
+        reconstruction on ``vol_geom`` at the poses the iteration started
+        from; NaN unless ``guard="entropy"``), ``increment_px`` and
         ``increment_max_px`` (RMS and largest detector displacement of
         sample points caused by the iteration), ``n_iter`` (Jacobian
         passes), ``accelerated``.
@@ -179,8 +186,9 @@ class OuterResult:
     corr_vol_geom : VolumeGeometry
         The (oversampled) grid the correlation used.
     status : int
-        See ``OUTER_STATUS``: 1 converged, 3 stopped contracting (both
-        ``success``), 0 iteration cap, 2 stopped on divergence.
+        See ``OUTER_STATUS``: 1 converged, 3 stopped contracting, 4 stopped
+        by the entropy guard (all ``success``), 0 iteration cap, 2 stopped on
+        divergence.
     message : str
     """
 
@@ -202,8 +210,8 @@ class OuterResult:
 
     @property
     def success(self) -> bool:
-        """Converged (1) or stopped contracting (3)."""
-        return self.status in (1, 3)
+        """Converged (1), stopped contracting (3) or by the entropy guard (4)."""
+        return self.status in (1, 3, 4)
 
     @property
     def chi_before(self) -> np.ndarray:
@@ -251,6 +259,27 @@ def _default_reconstruct(projections, vol_geom, geom):
     return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom)
 
 
+#: Names accepted by ``self_calibrate(reconstruct=)``.
+RECONSTRUCTORS = ("fdk", "nonneg_ls")
+
+
+def _reconstructors(reconstruct, oversample):
+    """(correlation-volume reconstruction, final-volume reconstruction) for ``reconstruct``."""
+    if reconstruct is None or reconstruct == "fdk":
+        return _default_reconstruct, _default_reconstruct
+    if isinstance(reconstruct, str):
+        if reconstruct != "nonneg_ls":
+            raise OuterError(f"reconstruct must be a callable or one of {RECONSTRUCTORS}, got {reconstruct!r}")
+
+        def rec(projections, vol_geom, geom):
+            return nonneg_ls(projections, vol_geom, geom, coarsen=oversample)
+
+        return rec, _default_reconstruct
+    if not callable(reconstruct):
+        raise OuterError(f"reconstruct must be a callable or one of {RECONSTRUCTORS}, got {reconstruct!r}")
+    return reconstruct, reconstruct
+
+
 def _gauge_text(kind: str, scale: bool) -> str:
     text = (
         "poses relative to the geometry given; gauge: zero mean rigid pose over the views "
@@ -261,7 +290,7 @@ def _gauge_text(kind: str, scale: bool) -> str:
     return text
 
 
-def _check(projections, geom, vol_geom, oversample, n_outer, warmup, tol_px):
+def _check(projections, geom, vol_geom, oversample, n_outer, warmup, tol_px, guard, entropy_tol):
     if not isinstance(geom, VectorGeometry):
         raise OuterError(f"geom must be a VectorGeometry, got {type(geom).__name__}")
     if not isinstance(vol_geom, VolumeGeometry):
@@ -274,6 +303,10 @@ def _check(projections, geom, vol_geom, oversample, n_outer, warmup, tol_px):
             raise OuterError(f"{name} must be an int >= {lo}, got {val!r}")
     if not (tol_px > 0):
         raise OuterError(f"tol_px must be positive (pixels), got {tol_px!r}")
+    if guard not in (None, "entropy"):
+        raise OuterError(f"guard must be None or 'entropy', got {guard!r}")
+    if not (isinstance(entropy_tol, (int, float, np.floating)) and entropy_tol > 0):
+        raise OuterError(f"entropy_tol must be a positive relative rise (e.g. 0.003), got {entropy_tol!r}")
     return p
 
 
@@ -282,7 +315,7 @@ def self_calibrate(
     geom: VectorGeometry,
     vol_geom: VolumeGeometry,
     *,
-    reconstruct: Optional[Callable] = None,
+    reconstruct=None,
     oversample: int = 2,
     basis="fourier:1",
     method: str = "full",
@@ -298,6 +331,8 @@ def self_calibrate(
     accelerate: bool = False,
     diverge_tol: float = 0.005,
     stall_ratio: Optional[float] = 1.0,
+    guard: Optional[str] = None,
+    entropy_tol: float = 0.003,
     fix_scale: bool = True,
     initial_rotvecs=None,
     initial_translations=None,
@@ -318,9 +353,15 @@ def self_calibrate(
     vol_geom : VolumeGeometry
         Reconstruction grid of the final volume. The correlation uses the
         same region with ``oversample`` x finer voxels.
-    reconstruct : callable, optional
-        ``reconstruct(projections, vol_geom, geom) -> volume``; default FDK
-        (cone beam) or FBP (parallel beam).
+    reconstruct : "fdk", "nonneg_ls" or callable, optional
+        Reconstruction of the correlation volume at every outer iteration.
+        ``"fdk"`` (default): FDK (cone beam) or FBP (parallel beam).
+        ``"nonneg_ls"``: :func:`pdvc.recon.nonneg_ls` with B-spline
+        coefficients on ``vol_geom`` (``coarsen=oversample``), the most
+        consistent non-negative volume under the projector for any orbit
+        (point 7 of the module docstring); about 40 projector pairs per
+        call. With a name the final volume is FDK/FBP. A callable
+        ``reconstruct(projections, vol_geom, geom) -> volume`` serves both.
     oversample : int
         Refinement of the correlation grid (module docstring, point 1).
     basis, method, frame, fixed
@@ -352,6 +393,15 @@ def self_calibrate(
         Stop the model stage (status 3) when an increment is at least this
         times the previous one, returning the poses before that round;
         ``None`` to run to ``tol_px`` or ``n_outer``.
+    guard : None or "entropy"
+        ``"entropy"``: before every iteration of the model stage, the
+        Shannon entropy of the analytic reconstruction on ``vol_geom``
+        (value range fixed by the first one) is compared with the lowest
+        seen in the model stage; a rise of more than ``entropy_tol``
+        (relative) stops the loop (status 4) with the poses before the
+        last iteration (point 7).
+    entropy_tol : float
+        Relative entropy rise that the guard tolerates.
     fix_scale : bool
         Cone beam: also fix the magnification gauge (:func:`pdvc.geometry.fix_gauge`).
     initial_rotvecs, initial_translations : (n_views, 3), optional
@@ -378,8 +428,8 @@ def self_calibrate(
     >>> out = self_calibrate(projections, geom, pdvc.VolumeGeometry((64, 64, 64)))  # doctest: +SKIP
     >>> out.geometry, out.message  # doctest: +SKIP
     """
-    p = _check(projections, geom, vol_geom, oversample, n_outer, warmup, tol_px)
-    rec = _default_reconstruct if reconstruct is None else reconstruct
+    p = _check(projections, geom, vol_geom, oversample, n_outer, warmup, tol_px, guard, entropy_tol)
+    rec, rec_final = _reconstructors(reconstruct, oversample)
     vg_c = refined_grid(vol_geom, oversample)
     c = np.asarray(vol_geom.offset, float)
     n = geom.n_views
@@ -424,9 +474,24 @@ def self_calibrate(
     stage = "warmup" if warmup > 0 and free_rot else "model"
     n_warm = 0
     best = None  # (chi_before, rv, t) in the model stage
+    ent_best = None  # lowest entropy in the model stage
+    ent_range = None
+    rv_prev, t_prev = rv, t
     X: list = []
     Fh: list = []
     for it in range(n_outer):
+        entropy = float("nan")
+        if guard == "entropy" and stage == "model":
+            ref = rec_final(p, vol_geom, geom.apply_poses(rv, t))
+            if ent_range is None:
+                ent_range = tuple(float(q) for q in np.percentile(ref, [0.1, 99.9]))
+            entropy = shannon_entropy(ref, value_range=ent_range)
+            if ent_best is not None and entropy > ent_best * (1 + entropy_tol):
+                log.info("outer %d: entropy %.5g rose above the lowest %.5g; stopping", it, entropy, ent_best)
+                status = 4
+                rv, t = rv_prev, t_prev
+                break
+            ent_best = entropy if ent_best is None else min(ent_best, entropy)
         vol = rec(p, vg_c, geom.apply_poses(rv, t))
         if stage == "warmup":
             kw = dict(basis=wb, frame="lab", fixed=warm_fixed, method="full")
@@ -478,6 +543,7 @@ def self_calibrate(
             chi_after=float(res.chi),
             snr_before=float(res.snr_history[0]),
             snr=float(res.snr_history[-1]),
+            entropy=entropy,
             increment_px=inc,
             increment_max_px=inc_max,
             n_iter=int(res.n_iter),
@@ -514,7 +580,7 @@ def self_calibrate(
             break
 
     geometry = geom.apply_poses(rv, t)
-    volume = rec(p, vol_geom, geometry)
+    volume = rec_final(p, vol_geom, geometry)
     return OuterResult(
         rotvecs=rv,
         translations=t,
