@@ -12,13 +12,15 @@
 from ._axis import MotionSummary, describe_motion
 from ._pipeline import GAUGE, CalibrationError, CalibrationResult, auto_scales, calibrate, per_view_snr, reconstruct
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
-from ._outer import OUTER_STATUS, OuterError, OuterResult, self_calibrate
+from ._outer import OUTER_STATUS, RECONSTRUCTORS, OuterError, OuterResult, drift_basis, self_calibrate
 
 __all__ = [
     "self_calibrate",
     "OuterResult",
     "OuterError",
     "OUTER_STATUS",
+    "RECONSTRUCTORS",
+    "drift_basis",
     "calibrate",
     "CalibrationResult",
     "CalibrationError",
