@@ -185,6 +185,8 @@ def test_rising_entropy_stops_and_returns_the_poses_before_the_last_iteration(sm
     # iteration started from, i.e. before the poses whose reconstruction tripped the guard
     starts = calls[::2]  # each iteration: guard reconstruction on vol_geom, then the correlation volume
     assert out.geometry == starts[len(out.history) - 1]
+    # ... and its volume on vol_geom is the guard's, not made again
+    assert len(calls) == 2 * len(out.history) + 1
 
 
 def test_entropy_is_nan_without_the_guard(small_case, small_run):

@@ -508,6 +508,7 @@ def self_calibrate(
     best = None  # (chi_before, rv, t) in the model stage
     ent_best = None  # lowest entropy in the model stage
     ent_range = None
+    refs: list = []  # the guard's last two volumes on vol_geom: the final volume may be one of them
     rv_prev, t_prev = rv, t
     X: list = []
     Fh: list = []
@@ -515,6 +516,7 @@ def self_calibrate(
         entropy = float("nan")
         if guard == "entropy" and stage == "model":
             ref = rec_final(p, vol_geom, geom.apply_poses(rv, t))
+            refs = (refs + [(rv, t, ref)])[-2:]
             if ent_range is None:
                 ent_range = tuple(float(q) for q in np.percentile(ref, [0.1, 99.9]))
             entropy = shannon_entropy(ref, value_range=ent_range)
@@ -612,7 +614,9 @@ def self_calibrate(
             break
 
     geometry = geom.apply_poses(rv, t)
-    volume = rec_final(p, vol_geom, geometry)
+    volume = next((v for r, tt, v in refs if r is rv and tt is t), None)
+    if volume is None:
+        volume = rec_final(p, vol_geom, geometry)
     return OuterResult(
         rotvecs=rv,
         translations=t,

@@ -97,8 +97,8 @@ def _bspline3(d: np.ndarray) -> np.ndarray:
 def spline_upsampling_matrix(n: int, factor: int) -> np.ndarray:
     """Samples, on a grid ``factor`` x finer, of the cubic B-splines centred on ``n`` coarse voxels.
 
-    Both grids cover the same interval (voxel edges to voxel edges), as
-    :func:`pdvc.calibration.refined_grid` lays them: fine voxel ``j`` sits at
+    Both grids cover the same interval (voxel edges to voxel edges), as the
+    outer loop's refined correlation grid does: fine voxel ``j`` sits at
     coarse index ``(j - (factor n - 1)/2) / factor + (n - 1)/2``. Coefficients
     beyond the grid are zero. Returns ``(factor n, n)`` float32; ``factor=1``
     is the identity (the voxels themselves are the unknowns).
