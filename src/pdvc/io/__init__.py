@@ -28,6 +28,7 @@ from ._config import (
     write_config,
 )
 from ._export import astra_volume_geometry, export_astra, export_cil, export_leap, export_tigre, tigre_to_geometry, write_exports
+from ._fingerprint import run_fingerprint
 from ._preprocess import PreprocessReport, beam_hardening, detector_roi, flats_from_columns, normalize
 from ._projections import DataError, FormatError, InputFileError, RawScan, read_projections
 from ._vendor import VendorGeometry, read_nikon, read_skyscan, read_vendor_geometry
@@ -54,4 +55,5 @@ __all__ = [
     "atomic_write_npy",
     "atomic_write_text",
     "prepare_output_dir",
+    "run_fingerprint",
 ]
