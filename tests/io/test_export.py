@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numpy as np
@@ -313,9 +314,13 @@ def test_write_exports_writes_four_json_files(tmp_path):
 
 def test_write_exports_parallel_writes_astra_only(tmp_path, caplog):
     g = parallel(np.linspace(0, np.pi, 4, endpoint=False), det_shape=(4, 5), pixel=0.1)
+    caplog.set_level(logging.INFO, logger="pdvc.io._export")
     out = write_exports(tmp_path, g, VolumeGeometry((4, 5, 5), 0.1))
     assert list(out) == ["astra"]
     assert [p.name for p in tmp_path.iterdir()] == ["geometry_astra.json"]
-    assert "geometry_tigre.json not written" in caplog.text
+    # expected for parallel beam: one INFO line, no warning
+    records = [r for r in caplog.records if r.name == "pdvc.io._export"]
+    assert [r.levelno for r in records] == [logging.INFO]
+    assert "geometry_tigre.json" in records[0].getMessage() and "cone beam only" in records[0].getMessage()
     with pytest.raises(GeometryError, match="not an existing folder"):
         write_exports(tmp_path / "missing", g, VolumeGeometry((4, 5, 5), 0.1))

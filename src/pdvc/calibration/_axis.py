@@ -234,10 +234,24 @@ class MotionSummary:
             "drift of the sample: velocity ({:+.3g}, {:+.3g}, {:+.3g}) per time unit, total ({:+.3g}, {:+.3g}, "
             "{:+.3g}) = {:.3f} px on the detector".format(*self.drift_velocity, *self.drift_total, self.drift_total_px),
             (f"jolts at views {self.jolts.tolist()}" if self.jolts.size else "no jolts detected"),
-            "detector displacement of the axis points (RMS over views): top {:.3f} px, centre {:.3f} px, "
-            "bottom {:.3f} px".format(*self.det_shift_rms),
+            "detector displacement of the volume's top, centre and bottom points, calibrated minus nominal "
+            "geometry (RMS over views): top {:.3f} px, centre {:.3f} px, bottom {:.3f} px (includes the placement "
+            "of the reconstruction under the gauge of the poses, zero mean pose over the views in a calibration; "
+            "the axis offset is above)".format(*self.det_shift_rms),
         ]
         return lines
+
+    def __str__(self) -> str:
+        title = f"What moved ({self.kind} beam, {self.n_views} views):"
+        return "\n".join([title] + ["  " + line for line in self.describe()])
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(kind={self.kind!r}, n_views={self.n_views}, roll_deg={self.roll_deg:+.4g}, "
+            f"pitch_deg={self.pitch_deg:+.4g}, offset_px={self.offset_px:+.4g}, "
+            f"precession_rms_deg={self.precession_rms_deg:.4g}, drift_total_px={self.drift_total_px:.4g}, "
+            f"jolts={int(self.jolts.size)})"
+        )
 
 
 def _frozen(a) -> np.ndarray:

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from ..errors import GeometryError
-from ._vector import VectorGeometry, _check_det_shape
+from ._vector import VectorGeometry, check_det_shape
 
 __all__ = ["circular_cone", "parallel"]
+
+
+_SPAN_EPS = 1e-6  # radians; 0..2*pi with endpoint must not warn
 
 
 def _angles(angles) -> np.ndarray:
@@ -16,6 +21,16 @@ def _angles(angles) -> np.ndarray:
         a = a[None]
     if a.ndim != 1 or a.size == 0 or not np.all(np.isfinite(a)):
         raise GeometryError(f"angles must be a non-empty 1D array of finite radians, got shape {np.shape(angles)}")
+    span = float(a.max() - a.min())
+    if span > 2.0 * np.pi + _SPAN_EPS:
+        # stacklevel 3: the user's call of circular_cone / parallel
+        warnings.warn(
+            f"angles span {span:.6g} (max - min), more than one full turn (2*pi = 6.283); angles are "
+            "expected in radians: were degrees given? Convert them with numpy.deg2rad(angles) "
+            "(a scan of several turns in radians is fine).",
+            UserWarning,
+            stacklevel=3,
+        )
     return a
 
 
@@ -56,7 +71,7 @@ def circular_cone(angles, *, sod: float, odd: float, det_shape, pixel, det_offse
         that is not centred on the rotation axis).
     """
     a = _angles(angles)
-    shape = _check_det_shape(det_shape)
+    shape = check_det_shape(det_shape)
     py, px = _pitch(pixel)
     if not (np.isfinite(sod) and sod > 0):
         raise GeometryError(f"sod must be a positive distance, got {sod!r}")
@@ -81,7 +96,7 @@ def parallel(angles, *, det_shape, pixel, det_offset=(0.0, 0.0)) -> VectorGeomet
     Parameters are as in :func:`circular_cone`.
     """
     a = _angles(angles)
-    shape = _check_det_shape(det_shape)
+    shape = check_det_shape(det_shape)
     py, px = _pitch(pixel)
     ro, co = _offset(det_offset)
     s, c = np.sin(a), np.cos(a)

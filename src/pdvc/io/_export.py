@@ -441,8 +441,8 @@ def write_exports(out_dir, geom: VectorGeometry, vol_geom: VolumeGeometry) -> di
     :func:`astra_volume_geometry`, :func:`export_tigre`, :func:`export_leap`,
     :func:`export_cil`), written atomically. Floats are written exactly
     (shortest round-trip form). A toolkit that cannot represent the
-    geometry (parallel beam for TIGRE, LEAP modular, CIL Flex; varying
-    pitch) is skipped with a logged warning.
+    geometry is skipped: parallel beam for TIGRE, LEAP modular and CIL Flex
+    with one INFO log line, a varying pitch with a logged warning.
 
     Parameters
     ----------
@@ -466,6 +466,15 @@ def write_exports(out_dir, geom: VectorGeometry, vol_geom: VolumeGeometry) -> di
         "leap": lambda: export_leap(geom, vol_geom),
         "cil": lambda: export_cil(geom, vol_geom),
     }
+    if geom.kind != "cone":
+        # expected for every parallel-beam run: one INFO line, not a warning per toolkit
+        cone_only = ("tigre", "leap", "cil")
+        log.info(
+            "%s beam: %s not written (those exports support cone beam only); geometry_astra.json holds the geometry",
+            geom.kind,
+            ", ".join(f"geometry_{name}.json" for name in cone_only),
+        )
+        builders = {name: build for name, build in builders.items() if name not in cone_only}
     written: dict[str, Path] = {}
     for name, build in builders.items():
         try:

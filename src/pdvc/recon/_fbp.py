@@ -64,6 +64,18 @@ def _check_inputs(projections, vol_geom, geom, out, views_per_block):
     return arr
 
 
+def _coverage_deg(weights: ScanWeights, period: float) -> float:
+    """Angular coverage for the log, degrees: the summed quadrature widths of the views.
+
+    Each view stands for its midpoint-rule width (one angular step for evenly
+    spaced views): an arc covers its span plus one step, and a scan that
+    closes its period covers all of it. So 91 parallel views 2 deg apart,
+    -88.2..91.8 deg, cover 180 deg, where ``weights.coverage`` (the period
+    minus the largest gap between view azimuths) says 178.
+    """
+    return float(np.degrees(min(float(np.sum(weights.dtheta)), period)))
+
+
 # -- geometry -----------------------------------------------------------------
 def _source_side_normals(geom: VectorGeometry) -> np.ndarray:
     """Unit detector normals pointing away from the source, ``(n_views, 3)``."""
@@ -359,9 +371,10 @@ def fdk(
         _check_center_in_front(geom, check_center(center))
     weights = scan_weights(geom, axis=axis, center=center, short_scan=short_scan)
     logger.info(
-        "fdk: %s scan, coverage %.1f deg, axis %s, centre %s",
+        "fdk: %s scan of %d views, coverage %.1f of 360 deg (each view covers its angular step), axis %s, centre %s",
         weights.kind,
-        np.degrees(weights.coverage),
+        geom.n_views,
+        _coverage_deg(weights, 2 * np.pi),
         np.round(weights.axis, 6).tolist(),
         np.round(weights.center, 6).tolist(),
     )
@@ -418,7 +431,12 @@ def fbp(
         )
     check_filter(filter, cutoff)
     weights = scan_weights(geom, axis=axis)
-    logger.info("fbp: %s scan, coverage %.1f deg", weights.kind, np.degrees(weights.coverage))
+    logger.info(
+        "fbp: %s scan of %d views, coverage %.1f of 180 deg (each view covers its angular step)",
+        weights.kind,
+        geom.n_views,
+        _coverage_deg(weights, np.pi),
+    )
     return _reconstruct(
         arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out,
         views_per_block=int(views_per_block),

@@ -13,7 +13,7 @@ from typing import Mapping, Sequence
 from matplotlib.figure import Figure
 
 from ..errors import PdvcError
-from ..io._atomic import atomic_path, atomic_write_text
+from ..io import atomic_path, atomic_write_text
 
 __all__ = ["ReportError", "write_report", "REPORT_DPI"]
 
@@ -130,7 +130,8 @@ def write_report(
         not listed follow in their mapping order (figures, then tables), so
         nothing is dropped.  Default: figures, then tables.
     notes : sequence of str
-        Free-text remarks (warnings, unobservable directions...), listed last.
+        Free-text remarks (the motion summary, unobservable directions...),
+        listed last under the heading "What moved".
     captions : mapping of str to str, optional
         Caption of a figure or table, by name.
     dpi : int
@@ -214,7 +215,7 @@ def write_report(
             parts.append(_table_html(header, rows))
         parts.append("</section>")
     if notes:
-        parts.append("<h2>Notes</h2>")
+        parts.append("<h2>What moved</h2>")
         parts.append('<ul class="notes">')
         parts.extend(f"<li>{esc(str(n))}</li>" for n in notes)
         parts.append("</ul>")
