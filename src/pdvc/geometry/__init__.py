@@ -2,7 +2,9 @@
 
 from ._compare import ReprojectionError, reprojection_error, sample_points
 from ._nominal import circular_cone, parallel
+from ._frames import lab_frames
 from ._poses import (
+    Poses,
     compose_poses,
     fix_gauge,
     invert_poses,
@@ -11,11 +13,14 @@ from ._poses import (
     remove_mean_pose,
     rotvec_to_matrix,
 )
-from ._vector import VectorGeometry
+from ._vector import VectorGeometry, check_det_shape
 from ._volume import VolumeGeometry
 
 __all__ = [
     "VectorGeometry",
+    "Poses",
+    "lab_frames",
+    "check_det_shape",
     "VolumeGeometry",
     "circular_cone",
     "parallel",

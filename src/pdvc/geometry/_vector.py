@@ -15,7 +15,7 @@ _KINDS = ("cone", "parallel")
 _ASTRA_TYPES = {"cone": "cone_vec", "parallel": "parallel3d_vec"}
 
 
-def _check_det_shape(det_shape) -> tuple[int, int]:
+def check_det_shape(det_shape) -> tuple[int, int]:
     try:
         shape = tuple(det_shape)
     except TypeError:
@@ -64,7 +64,7 @@ class VectorGeometry:
     def __post_init__(self) -> None:
         if self.kind not in _KINDS:
             raise GeometryError(f"kind must be one of {_KINDS}, got {self.kind!r}")
-        object.__setattr__(self, "det_shape", _check_det_shape(self.det_shape))
+        object.__setattr__(self, "det_shape", check_det_shape(self.det_shape))
         vec = np.array(self.vectors, dtype=np.float64, copy=True)
         if vec.ndim == 1 and vec.shape[0] == 12:
             vec = vec[None, :]
@@ -314,6 +314,16 @@ class VectorGeometry:
         if self.kind == "cone":
             out[:, 0] += t
         return VectorGeometry(out.reshape(-1, 12), self.det_shape, self.kind)
+
+    def apply(self, poses) -> "VectorGeometry":
+        """Geometry that sees the sample at ``poses`` (a :class:`pdvc.geometry.Poses` of this scan)."""
+        from ._poses import Poses
+
+        if not isinstance(poses, Poses):
+            raise GeometryError(f"poses must be a pdvc.geometry.Poses, got {type(poses).__name__}")
+        if poses.n_views != self.n_views:
+            raise GeometryError(f"poses have {poses.n_views} views, the geometry {self.n_views}")
+        return self.apply_poses(poses.rotvecs, poses.translations)
 
     def apply_poses(self, rotvecs, translations, *, center=None) -> "VectorGeometry":
         """Geometry that sees the sample at per-view rigid poses.
