@@ -32,7 +32,7 @@ def _err(geom_vectors, true_vectors, det_shape, n):
 
 
 def test_demo_calibrates_within_a_tenth_of_a_pixel():
-    res = run_demo(size=40, n_views=100, seed=1, n_outer=5)
+    res = run_demo(size=40, n_views=100, seed=1, max_outer=5)
     assert res.nominal_error.rms > 1.0  # the simulated motion is visible
     assert res.recovered_error.rms < 0.1 * res.nominal_error.rms
     cal = res.calibration
@@ -94,10 +94,10 @@ def test_interrupted_run_leaves_whole_files_and_resumes(simulated, tmp_path):
     out = tmp_path / "run"
 
     def stop_at_fine_scale(info):
-        if info.get("stage") == "scale" and info.get("scale") == 1:
+        if info.get("event") == "stage" and info.get("scale") == 1:
             raise KeyboardInterrupt
 
-    opts = dict(scales=(2, 1), n_outer=2)
+    opts = dict(scales=(2, 1), max_outer=2)
     with pytest.raises(KeyboardInterrupt):
         pdvc.calibrate(proj, geom, vg, out_dir=out, progress=stop_at_fine_scale, **opts)
     assert json.loads((out / "run.json").read_text())["status"] == "running"
@@ -105,8 +105,9 @@ def test_interrupted_run_leaves_whole_files_and_resumes(simulated, tmp_path):
     assert not (out / "geometry.npy").exists()
     seen = []
     res = pdvc.calibrate(proj, geom, vg, out_dir=out, resume=True, progress=seen.append, **opts)
-    assert seen[0]["stage"] == "resume"
-    assert [s["scale"] for s in seen if s.get("stage") == "scale"] == [1]  # scale 2 was not redone
+    assert seen[0]["event"] == "resume"
+    # the stages at scale 2 (warm-up and model) were not redone: the two at scale 1 ran
+    assert [(s["name"], s["scale"]) for s in seen if s.get("event") == "stage"] == [("warmup", 1), ("model", 1)]
     assert {h["scale"] for h in res.history} == {2, 1}
     assert json.loads((out / "run.json").read_text())["status"] == "complete"
 
@@ -118,18 +119,19 @@ def test_interrupted_within_a_scale_resumes_after_the_last_round(simulated, tmp_
     out = tmp_path / "run"
 
     def stop_after_second_round(info):
-        if info.get("stage") == "outer" and info.get("iteration") == 1:
+        if info.get("event") == "round" and info.get("iteration") == 1:
             raise KeyboardInterrupt
 
-    opts = dict(scales=(1,), n_outer=4, tol_px=1e-9, oversample=1)
+    opts = dict(scales=(1,), max_outer=4, tol_px=1e-9, oversample=1)
     with pytest.raises(KeyboardInterrupt):
         pdvc.calibrate(proj, geom, vg, out_dir=out, progress=stop_after_second_round, **opts)
-    with np.load(out / "checkpoint.npz") as z:
-        assert int(z["rounds_done"]) == 2 and int(z["scale_index"]) == 0
+    with np.load(out / "checkpoint.npz") as z:  # the warm-up's round and the model's first
+        assert int(z["stage_index"]) == 1 and int(z["rounds_done"]) == 1
     seen = []
     res = pdvc.calibrate(proj, geom, vg, out_dir=out, resume=True, progress=seen.append, **opts)
-    rounds = [s for s in seen if s.get("stage") == "outer"]
-    assert len(rounds) <= 2  # only the rounds left of n_outer = 4
+    rounds = [s for s in seen if s.get("event") == "round"]
+    assert len(rounds) <= 2  # only the model's rounds left of max_outer = 4 (1 warm-up + 3)
+    assert all(r["stage"] == "model" and r["round"] >= 1 for r in rounds)
     assert len(res.history) == 2 + len(rounds)
 
 
@@ -162,8 +164,8 @@ def test_motion_too_large_for_the_linearisation_is_reported(simulated):
     rv, t = offset_poses(geom, 12.0)
     shifted = pdvc.VectorGeometry(geom.apply_poses(rv, t).vectors, geom.det_shape, "cone")
     data = pdvc.forward(pdvc.fdk(proj, vg, shifted), vg, shifted)
-    res = pdvc.calibrate(data, geom, vg, init="none", scales=(1,), n_outer=2, oversample=1)
-    assert res.status <= 0
+    res = pdvc.calibrate(data, geom, vg, init="none", scales=(1,), max_outer=2, oversample=1)
+    assert not res.success
     assert "coarser scale" in res.message
 
 
@@ -208,3 +210,51 @@ def test_noise_from_counts_matches_the_simulated_photon_statistics(tmp_path):
     empirical = float(np.var(s.projections - scan.clean))
     assert g2 == pytest.approx(empirical, rel=0.15)
     assert g2 == pytest.approx(float(np.mean(scan.noise_variance())), rel=0.15)
+
+
+def test_resume_with_changed_data_is_refused(simulated, tmp_path):
+    proj = np.load(simulated / "projections.npy")
+    geom = pdvc.VectorGeometry(np.load(simulated / "geometry_nominal.npy"), proj.shape[1:], "cone")
+    vg = pdvc.VolumeGeometry((32, 32, 32))
+    out = tmp_path / "run"
+
+    def stop_after_first_round(info):
+        if info.get("event") == "round":
+            raise KeyboardInterrupt
+
+    opts = dict(scales=(1,), max_outer=3, oversample=1)
+    with pytest.raises(KeyboardInterrupt):
+        pdvc.calibrate(proj, geom, vg, out_dir=out, progress=stop_after_first_round, **opts)
+    changed = proj.copy()
+    changed[5, 3, 3] += 0.01
+    with pytest.raises(pdvc.PdvcError, match="projections differ"):
+        pdvc.calibrate(changed, geom, vg, out_dir=out, resume=True, **opts)
+    with pytest.raises(pdvc.PdvcError, match="settings differ"):
+        pdvc.calibrate(proj, geom, vg, out_dir=out, resume=True, scales=(1,), max_outer=4, oversample=1)
+    assert json.loads((out / "run.json").read_text())["status"] == "running"  # the refused resumes changed nothing
+
+
+def test_cli_exit_code_says_a_calibration_did_not_succeed(simulated, tmp_path, monkeypatch, capsys):
+    # a calibration made to end worse than nominal (the driver is broken on purpose): exit 3, outputs written
+    import dataclasses
+
+    from pdvc.calibration import _pipeline
+    from pdvc.geometry import Poses
+
+    real = _pipeline.run_stages
+
+    def broken(*a, **kw):
+        out = real(*a, **kw)
+        n = out.poses.n_views
+        return dataclasses.replace(out, poses=Poses(np.zeros((n, 3)), np.tile([4.0, 0.0, 2.0], (n, 1))))
+
+    monkeypatch.setattr(_pipeline, "run_stages", broken)
+    cfg = simulated / "config.toml"
+    text = cfg.read_text() + '\n[calibration]\nmax_outer = 1\nscales = [1]\noversample = 1\n'
+    (tmp_path / "c.toml").write_text(text.replace('path = "projections.npy"', f'path = "{simulated / "projections.npy"}"'))
+    code = main(["-q", "calibrate", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o")])
+    assert code == 3
+    run = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert run["status"] == "complete" and run["success"] is False and run["status_name"] == "worse_than_nominal"
+    assert (tmp_path / "o" / "geometry.npy").is_file() and (tmp_path / "o" / "report.html").is_file()
+    assert "did not succeed" in capsys.readouterr().err

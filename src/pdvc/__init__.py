@@ -1,7 +1,8 @@
 """pdvc: self-calibration of lab micro-CT scans by projection-based DVC."""
 
 from .errors import BackendError, GeometryError, InputTypeError, PdvcError, ShapeError
-from .geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
+from .status import Status
+from .geometry import Poses, VectorGeometry, VolumeGeometry, circular_cone, parallel
 from .projectors import backproject, forward, jacobian, reduce_views
 from .recon import fbp, fdk
 from .correlation import correlate
@@ -16,6 +17,8 @@ __all__ = [
     "ShapeError",
     "BackendError",
     "InputTypeError",
+    "Status",
+    "Poses",
     "VectorGeometry",
     "VolumeGeometry",
     "circular_cone",

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import logging
 
-import numpy as np
-
 from .calibration import CalibrationResult
 from .calibration import calibrate as _calibrate
 
@@ -39,14 +37,16 @@ def calibrate(
     out_dir : path, optional
         Output folder (layout in :mod:`pdvc.report._outputs`): refused when
         not empty unless ``overwrite`` or ``resume``. A checkpoint is written
-        after every outer iteration; ``run.json`` says "complete" only at the end.
+        after every round; ``run.json`` says "complete" only at the end, with
+        ``success``, the status and the message. Every output is written even
+        when the calibration did not succeed.
     resume : bool
         Continue an interrupted run from the checkpoint in ``out_dir``.
     config : Config or dict, optional
         The resolved configuration, written as ``config.toml``.
     **options
-        Passed to :func:`pdvc.calibration.calibrate` (basis, method, frame,
-        fixed, scales, oversample, n_outer, tol_px, init, weights, ...).
+        Passed to :func:`pdvc.calibration.calibrate` (recipe, stages, scales,
+        max_outer, basis, method, frame, fixed, init, weights, ...).
 
     Returns
     -------
@@ -58,7 +58,11 @@ def calibrate(
         return _calibrate(projections, geom, vol_geom, **options)
     from .report._outputs import OutputWriter
 
-    writer = OutputWriter(out_dir, overwrite=overwrite, resume=resume)
+    inputs = () if config is None else (getattr(config, "source", None), getattr(getattr(config, "data", None), "path", None))
+    writer = OutputWriter(
+        out_dir, overwrite=overwrite, resume=resume, fingerprint=_fingerprint(projections, geom, vol_geom, options, config),
+        keep=inputs,
+    )
     # the run's log (INFO and above of every pdvc module), appended on --resume
     handler = logging.FileHandler(writer.out / "pdvc.log", mode="a" if resume else "w", encoding="utf-8")
     handler.setLevel(logging.INFO)
@@ -72,12 +76,22 @@ def calibrate(
         state = writer.load_checkpoint() if resume else None
         if resume and state is None:
             log.warning("no checkpoint in %s: starting from the beginning", writer.out)
-        res = _calibrate(projections, geom, vol_geom, checkpoint=lambda st: writer.save_checkpoint(**st), resume=state, **options)
-        s = int(res.scales[-1])
-        p_fine = np.asarray(projections, np.float32) if s == 1 else res.projections_fine
-        writer.write(res, projections=p_fine, geom_fine=geom if s == 1 else geom.binned(s), config=config, save_initial_volume=save_initial_volume)
+        res = _calibrate(projections, geom, vol_geom, checkpoint=writer.save_checkpoint, resume=state, **options)
+        writer.write(res, projections=projections, config=config, save_initial_volume=save_initial_volume)
     finally:
         root.removeHandler(handler)
         root.setLevel(old_level)
         handler.close()
     return res
+
+
+def _fingerprint(projections, geom, vol_geom, options: dict, config) -> dict:
+    """What ``--resume`` checks: data, geometry and settings (callables left out; arrays such as weights by their hash)."""
+    from .io import run_fingerprint
+
+    settings = {"options": {k: v for k, v in options.items() if not callable(v)}}
+    if config is not None:
+        d = config.to_dict() if hasattr(config, "to_dict") else dict(config)
+        # [data] is left out: where the projections are read from may move; what they hold is the data hash
+        settings["config"] = {k: v for k, v in d.items() if k not in ("output", "data")}
+    return run_fingerprint(projections, geom, vol_geom, settings)

@@ -38,27 +38,15 @@ class Scan:
     raw: object
 
 
-def calibration_options(cal) -> dict:
-    """``[calibration]`` keys as :func:`pdvc.calibrate` options."""
-    opts = dict(
-        basis=cal.basis,
-        method=cal.method,
-        frame=cal.frame,
-        fixed=tuple(cal.fixed),
-        scales=tuple(cal.scales) if cal.scales != "auto" else "auto",
-        n_outer=int(cal.max_outer),
-        tol_px=float(cal.tol_px),
-        max_iter=int(cal.max_iter),
-        max_modes=int(cal.max_modes),
-        pgd_passes=int(cal.pgd_passes),
-        min_gain=float(cal.min_gain),
-        noise_floor=float(cal.noise_floor),
-        rcond=float(cal.rcond),
-        fix_scale=bool(cal.fix_scale),
-        backend=cal.backend,
-        oversample=int(cal.oversample),
-        init=cal.init,
-    )
+def calibration_options(cal, det_shape) -> dict:
+    """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape``."""
+    from .calibration import Stage, resolve_stages
+
+    if cal.stage is not None:
+        stages = tuple(Stage.from_dict(d) for d in cal.stage)
+    else:
+        stages = resolve_stages(det_shape, recipe=cal.recipe, **cal.recipe_parameters())
+    opts = dict(recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init)
     if cal.center is not None:
         opts["center"] = tuple(cal.center)
     return opts
@@ -150,11 +138,14 @@ def load_scan(config, *, out_dir=None) -> Scan:
     frac = check_coverage(geom, vol_geom)
     if frac < 0.6:  # a square grid as wide as the detector gives ~0.71: its corners leave the field, as in any scan
         notes.append(f"warning: only {100 * frac:.0f}% of the volume box projects onto the detector at the worst view")
-    cal_opts = calibration_options(cfg.calibration)
+    cal_opts = calibration_options(cfg.calibration, geom.det_shape)
     if gamma2_counts is not None:
         cal_opts["noise_variance"] = gamma2_counts
         notes.append(f"noise variance from the counts (Poisson, gain 1): {gamma2_counts:.3g}")
-    resolved = cfg.resolved(n_views=p.shape[0], det_shape=raw.det_shape if pp.roi_rows is None and pp.roi_cols is None and pp.bin == 1 else None, vol_geom=vol_geom)
+    resolved = cfg.resolved(
+        n_views=p.shape[0], det_shape=raw.det_shape if pp.roi_rows is None and pp.roi_cols is None and pp.bin == 1 else None,
+        vol_geom=vol_geom, stages=cal_opts["stages"],
+    )
     if out_dir is not None:
         resolved = dataclasses.replace(resolved, output=dataclasses.replace(resolved.output, dir=str(out_dir)))
     return Scan(

@@ -7,8 +7,11 @@ Exit codes
 ----------
 0  success
 1  a pdvc error: bad input (the message names the parameter, what was
-   expected and what came), refused output folder, failed calibration
+   expected and what came), refused output folder or resume
 2  wrong command-line usage
+3  the calibration ran but did not succeed (diverged, did not converge, or
+   fitted the data worse than the nominal geometry, which is then the one
+   returned); every output is written and ``run.json`` says why
 130  interrupted (Ctrl-C); every file already written is whole, ``run.json``
    says the run is not complete and ``pdvc calibrate --resume`` continues it
 """
@@ -28,7 +31,7 @@ from .errors import PdvcError
 
 log = logging.getLogger("pdvc")
 
-EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOT_CALIBRATED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
 class _Progress:
@@ -42,25 +45,28 @@ class _Progress:
     def __call__(self, info: dict) -> None:
         if self.quiet:
             return
-        stage = info.get("stage", "")
+        event = info.get("event", "")
         el = time.perf_counter() - self.t0
-        if stage == "init":
+        if event == "init":
             msg = "coarse initialisation (axis offset from opposite views)"
-        elif stage == "reconstruct":
-            msg = f"reconstruction ({info.get('what', '')})"
-        elif stage == "scale":
-            msg = f"scale {info['scale']}: detector {info['det_shape'][0]}x{info['det_shape'][1]}, grid {'x'.join(map(str, info['volume']))}"
-        elif stage == "outer":
-            parts = [f"  scale {info.get('scale')} outer {info.get('iteration')}"]
-            if "chi_before" in info and "chi_after" in info:
-                parts.append(f"chi {info['chi_before']:.4g} -> {info['chi_after']:.4g}")
-            if "increment_px" in info:
-                parts.append(f"increment {info['increment_px']:.3g} px")
-            msg = ", ".join(parts)
-        elif stage == "resume":
-            msg = f"resuming at scale {info.get('scale')} after {info.get('iteration')} outer iterations"
+        elif event == "reconstruct":
+            msg = f"reconstruction ({info.get('what', '')} geometry, full resolution)"
+        elif event == "stage":
+            msg = (
+                f"stage {info['index'] + 1}/{info['n_stages']} '{info['name']}' at scale {info['scale']}: detector "
+                f"{info['det_shape'][0]}x{info['det_shape'][1]}, grid {'x'.join(map(str, info['volume']))}"
+            )
+        elif event == "round":
+            msg = (
+                f"  {info.get('stage')} round {info.get('round')}: chi {info['chi_before']:.4g} -> {info['chi_after']:.4g}, "
+                f"increment {info['increment_px']:.3g} px ({info.get('elapsed_s', 0.0):.1f} s)"
+            )
+        elif event == "resume":
+            msg = f"resuming at stage {info.get('stage_index', 0) + 1} after {info.get('rounds')} rounds"
+        elif event == "assess":
+            msg = "uncertainty and motion modes at the geometry kept"
         else:
-            msg = stage
+            msg = str(event)
         print(f"[{el:7.1f} s] {msg}", file=self.stream, flush=True)
 
 
@@ -87,6 +93,9 @@ def _demo(args: argparse.Namespace) -> int:
             print(f"    {line}")
     if args.out:
         print(f"  outputs and report.html in {args.out}")
+    if not cal.success:
+        print(f"pdvc: the demo's calibration did not succeed ({cal.status}): {cal.message}", file=sys.stderr)
+        return EXIT_NOT_CALIBRATED
     return EXIT_OK
 
 
@@ -116,13 +125,17 @@ def _calibrate(args: argparse.Namespace) -> int:
         weights=scan.weights,
         **scan.calibration_options,
     )
-    print(f"calibration: {res.message} in {res.elapsed_s:.1f} s")
+    verdict = "calibration succeeded" if res.success else "CALIBRATION DID NOT SUCCEED"
+    print(f"{verdict} ({res.status}): {res.message} in {res.elapsed_s:.1f} s")
     print(f"  mean SNR {np.mean(res.snr_before):.2f} -> {np.mean(res.snr_after):.2f} dB; entropy {res.entropy_before:.3f} -> {res.entropy_after:.3f} bits")
     if res.motion is not None and hasattr(res.motion, "describe"):
         for line in res.motion.describe():
             print(f"  {line}")
     print(f"  outputs in {out} (report.html, geometry.npy, motion.csv, result.h5, volume.tif)")
-    return EXIT_OK if res.status >= 0 else EXIT_ERROR
+    if not res.success:
+        print(f"pdvc: the calibration did not succeed ({res.status}); outputs written, see {out}/run.json", file=sys.stderr)
+        return EXIT_NOT_CALIBRATED
+    return EXIT_OK
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
@@ -219,7 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pdvc",
         description="Self-calibration of lab micro-CT scans by projection-based DVC.",
-        epilog="Exit codes: 0 success, 1 pdvc error (bad input, refused output), 2 usage, 130 interrupted.",
+        epilog="Exit codes: 0 success, 1 pdvc error (bad input, refused output), 2 usage, "
+        "3 calibration did not succeed (outputs written), 130 interrupted.",
     )
     parser.add_argument("--version", action="version", version=f"pdvc {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")

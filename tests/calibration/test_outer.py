@@ -6,15 +6,16 @@ import numpy as np
 import pytest
 
 import pdvc
-from pdvc.calibration._outer import OUTER_STATUS, OuterError, OuterResult, drift_basis, refined_grid, self_calibrate
+from pdvc import Status
+from pdvc.calibration import OuterError, OuterResult, drift_basis, refined_grid, self_calibrate
 from pdvc.errors import ShapeError
-from pdvc.geometry import fix_gauge, remove_mean_pose, reprojection_error
+from pdvc.geometry import Poses, fix_gauge, remove_mean_pose, reprojection_error
 from pdvc.recon import fdk
 from tests.correlation.cases import make_case
 
 HISTORY_KEYS = {
-    "iteration", "stage", "chi_before", "chi_after", "snr_before", "snr", "entropy", "increment_px",
-    "increment_max_px", "n_iter", "accelerated",
+    "iteration", "stage", "stage_index", "scale", "round", "chi_before", "chi_after", "snr_before", "snr", "entropy",
+    "increment_px", "increment_max_px", "n_iter", "engine_status", "elapsed_s",
 }
 
 
@@ -57,7 +58,7 @@ def test_drift_basis_falls_back_on_few_views():
     "kw, err",
     [
         (dict(oversample=0), OuterError),
-        (dict(n_outer=0), OuterError),
+        (dict(max_outer=0), OuterError),
         (dict(warmup=-1), OuterError),
         (dict(oversample=1.5), OuterError),
         (dict(tol_px=0.0), OuterError),
@@ -65,6 +66,7 @@ def test_drift_basis_falls_back_on_few_views():
         (dict(entropy_tol=0.0), OuterError),
         (dict(reconstruct="sirt"), OuterError),
         (dict(reconstruct=3), OuterError),
+        (dict(recipe="wobble"), OuterError),
     ],
 )
 def test_bad_options_are_rejected(small_case, kw, err):
@@ -88,7 +90,7 @@ def small_run(small_case):
     c = small_case
     seen = []
     proj = c.scan.projections.copy()
-    out = self_calibrate(proj, c.scan.geometry, c.vol_geom, n_outer=5, callback=seen.append, **TRANSLATIONS)
+    out = self_calibrate(proj, c.scan.geometry, c.vol_geom, max_outer=5, callback=seen.append, **TRANSLATIONS)
     np.testing.assert_array_equal(proj, c.scan.projections)  # input untouched
     return out, seen
 
@@ -98,18 +100,20 @@ def test_result_structure(small_case, small_run):
     out, seen = small_run
     assert isinstance(out, OuterResult)
     n = c.scan.geometry.n_views
+    assert isinstance(out.poses, Poses) and out.poses.n_views == n
     assert out.rotvecs.shape == (n, 3) and out.translations.shape == (n, 3)
-    assert out.geometry == c.scan.geometry.apply_poses(out.rotvecs, out.translations)
+    assert out.geometry == c.scan.geometry.apply(out.poses)
     assert out.volume.shape == c.vol_geom.shape and out.volume.dtype == np.float32
     assert out.vol_geom == c.vol_geom
     assert out.corr_vol_geom.shape == tuple(2 * s for s in c.vol_geom.shape)
-    assert out.status in OUTER_STATUS and out.message == OUTER_STATUS[out.status]
+    assert isinstance(out.status, Status) and out.message == out.status.message
     assert 1 <= out.n_outer <= 5
     assert all(set(h) == HISTORY_KEYS for h in out.history)
     assert out.history[0]["stage"] == "model"  # no rotation free (TRANSLATIONS): the warm-up is skipped
     assert [h["iteration"] for h in out.history] == list(range(out.n_outer))
     assert seen == [dict(h) for h in out.history]  # the callback saw every iteration
-    assert out.result.basis is not None  # the last CorrelationResult
+    assert out.result.basis is not None  # the CorrelationResult whose poses were kept
+    assert [o.name for o in out.stages] == ["model"] and out.stages[0].status == out.status
     assert "magnification" in out.gauge and "mean rotation" in out.gauge
 
 
@@ -137,14 +141,14 @@ def test_poses_are_gauge_fixed(small_case, small_run):
 def test_increment_below_tolerance_stops_the_loop(small_case):
     c = small_case
     out = self_calibrate(
-        c.scan.projections, c.scan.geometry, c.vol_geom, n_outer=10, tol_px=0.5, warmup=0, **TRANSLATIONS
+        c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=10, tol_px=0.5, warmup=0, **TRANSLATIONS
     )
-    assert out.status == 1
+    assert out.status == Status.CONVERGED and out.success
     assert out.history[-1]["increment_px"] < 0.5 <= out.history[-2]["increment_px"]
 
 
-def test_rising_data_inconsistency_stops_and_returns_the_best_poses(small_case):
-    # a reconstruction that gets worse at every call: chi_before rises in the model stage
+def test_rising_data_inconsistency_from_the_start_is_divergence(small_case):
+    # a reconstruction that gets worse at every call: chi_before rises from the first round on
     c = small_case
     calls = []
 
@@ -154,13 +158,32 @@ def test_rising_data_inconsistency_stops_and_returns_the_best_poses(small_case):
         return vol * (1.0 + 0.5 * (len(calls) - 1))
 
     out = self_calibrate(
-        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct=bad_reconstruct, warmup=0, n_outer=6
+        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct=bad_reconstruct, warmup=0, max_outer=6
     )
-    assert out.status == 2
+    assert out.status == Status.DIVERGED and not out.success
     chis = out.chi_before
-    best = int(np.argmin(chis))
-    # the poses returned are those the best reconstruction was made with
-    assert out.geometry == calls[best]
+    assert int(np.argmin(chis)) == 0
+    # the poses returned are those the best reconstruction was made with: where the stage started
+    assert out.geometry == calls[0] == c.scan.geometry
+
+
+def test_rising_data_inconsistency_after_the_best_round_keeps_the_best_poses(small_case):
+    # better at the second call, then worse and worse: the guard keeps the poses of the best (a success)
+    c = small_case
+    calls = []
+
+    def reconstruct(p, vg, g):
+        calls.append(g)
+        k = len(calls) - 1
+        return fdk(p, vg, g) * (1.0 + (0.3 if k == 0 else 0.5 * (k - 1)))
+
+    out = self_calibrate(
+        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct=reconstruct, warmup=0, max_outer=6,
+        stall_ratio=None, tol_px=1e-9, **TRANSLATIONS,
+    )
+    assert out.status == Status.CONSISTENCY_GUARD and out.success, out.message
+    assert int(np.argmin(out.chi_before)) == 1
+    assert out.geometry == calls[1]
 
 
 def test_rising_entropy_stops_and_returns_the_poses_before_the_last_iteration(small_case):
@@ -176,9 +199,9 @@ def test_rising_entropy_stops_and_returns_the_poses_before_the_last_iteration(sm
 
     out = self_calibrate(
         c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct=noisier, guard="entropy", warmup=0,
-        n_outer=6, stall_ratio=None, tol_px=1e-9, **TRANSLATIONS,
+        max_outer=6, stall_ratio=None, tol_px=1e-9, **TRANSLATIONS,
     )
-    assert out.status == 4 and out.success, out.message
+    assert out.status == Status.ENTROPY_GUARD and out.success, out.message
     ent = [h["entropy"] for h in out.history]
     assert all(np.isfinite(ent)) and len(out.history) >= 1
     # the guard looks before each iteration: the geometry returned is the one the last
@@ -197,29 +220,18 @@ def test_entropy_is_nan_without_the_guard(small_case, small_run):
 def test_nonneg_ls_reconstruction_in_the_loop(small_case):
     c = small_case
     out = self_calibrate(
-        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct="nonneg_ls", warmup=0, n_outer=2,
+        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct="nonneg_ls", warmup=0, max_outer=2,
         **TRANSLATIONS,
     )
     assert reprojection_error(out.geometry, c.scan.true_geometry, c.points).rms < 0.15
     assert out.volume.shape == c.vol_geom.shape
 
 
-def test_anderson_acceleration_runs_and_is_flagged(small_case):
-    c = small_case
-    out = self_calibrate(
-        c.scan.projections, c.scan.geometry, c.vol_geom, warmup=0, n_outer=4, accelerate=True, stall_ratio=None,
-        tol_px=1e-6, **TRANSLATIONS,
-    )
-    flags = [h["accelerated"] for h in out.history]
-    assert flags[0] is False and any(flags[1:])
-    assert reprojection_error(out.geometry, c.scan.true_geometry, c.points).rms < 0.1
-
-
 def test_initial_poses_are_used(small_case):
     c = small_case
     out = self_calibrate(
-        c.scan.projections, c.scan.geometry, c.vol_geom, n_outer=2, warmup=0,
-        initial_rotvecs=c.scan.rotvecs, initial_translations=c.scan.translations,
+        c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=2, warmup=0,
+        initial_poses=Poses(c.scan.rotvecs, c.scan.translations),
     )
     # started at the truth, the first reconstruction is already consistent
     assert out.history[0]["chi_before"] < 1.5
@@ -228,5 +240,26 @@ def test_initial_poses_are_used(small_case):
 def test_free_rotations_start_with_the_translation_warmup(small_case):
     """Rotations free (default: rz fixed only): round 0 measures translations only, in the lab frame."""
     c = small_case
-    out = self_calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, n_outer=2, oversample=1, tol_px=1e-9)
+    out = self_calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=2, oversample=1, tol_px=1e-9)
     assert [h["stage"] for h in out.history] == ["warmup", "model"]
+    assert out.stages[0].status == Status.ROUNDS_DONE  # a warm-up that ran its round is done, not "not converged"
+
+
+def test_a_round_whose_correlation_lowers_nothing_is_a_fixed_point_not_a_convergence(small_case, monkeypatch):
+    # every step the engine tries raises chi: no step is ever kept, so nothing moved. The loop says
+    # so (FIXED_POINT) instead of reading the zero increment as convergence.
+    from pdvc.correlation import _engine
+
+    c = small_case
+    calls = {"n": 0}
+
+    def rising_chi(self, red):  # whatever the step, chi is higher than before
+        calls["n"] += 1
+        return 1.0 + calls["n"]
+
+    monkeypatch.setattr(_engine._Problem, "chi", rising_chi)
+    # (the consistency guard is off: the fake chi of each fresh reconstruction rises too)
+    out = self_calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=3, warmup=0, guards=(), **TRANSLATIONS)
+    assert out.status == Status.FIXED_POINT
+    assert out.history == ()  # no round was recorded as a move
+    assert out.geometry == c.scan.geometry

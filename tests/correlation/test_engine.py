@@ -169,3 +169,30 @@ def test_multiscale_rejects_bad_schedule(setup):
     vg, vol, geom, angles = setup
     with pytest.raises(CorrelationError, match="scales"):
         correlate(vol, vg, _data(vol, vg, geom, np.zeros((36, 3)), np.zeros((36, 3))), geom, scales=(2, 0))
+
+
+@pytest.mark.parametrize("method", ["full", "pgd"])
+def test_a_rejected_step_is_never_reported_converged(setup, monkeypatch, method):
+    # Every step the engine tries raises chi (chi is made to grow with each evaluation). Damping
+    # shrinks the step below the tolerance; the engine used to accept that tiny step and say
+    # "converged". Now no step is kept, and the status says that chi could not be lowered.
+    from pdvc import Status
+    from pdvc.correlation import _engine
+
+    vg, vol, geom, angles = setup
+    t = np.zeros((36, 3))
+    t[:, 0] = 0.5
+    data = _data(vol, vg, geom, np.zeros((36, 3)), t)
+    calls = {"n": 0}
+
+    def rising_chi(self, red):  # whatever the step, chi is higher than before
+        calls["n"] += 1
+        return 1.0 + calls["n"]
+
+    monkeypatch.setattr(_engine._Problem, "chi", rising_chi)
+    res = correlate(vol, vg, data, geom, basis="constant", method=method, noise_variance=1e-4, max_iter=30, noise_floor=0.0)
+    assert len(res.chi_history) == 1  # nothing accepted
+    np.testing.assert_array_equal(res.translations, 0.0)
+    if method == "full":
+        assert res.status == Status.NO_DESCENT and not res.success
+    assert res.status != Status.CONVERGED

@@ -63,7 +63,9 @@ def test_minimal_file_gets_defaults_and_absolute_paths(tmp_path):
     assert g.pixel == (0.2, 0.1) and g.det_offset == (0.0, 0.0)
     assert g.angles == "auto"
     assert cfg.volume.offset == (0.0, 0.0, 0.0) and cfg.volume.shape is None
-    assert cfg.calibration.scales == "auto" and cfg.calibration.fixed == ("rz",) and cfg.calibration.basis == "fourier:1" and cfg.calibration.method == "full"
+    # the recipe's own model applies: its parameters stay unset until given
+    assert cfg.calibration.recipe == "default" and cfg.calibration.scales == "auto" and cfg.calibration.stage is None
+    assert cfg.calibration.fixed is None and cfg.calibration.basis is None and cfg.calibration.recipe_parameters() == {}
     assert cfg.output.dir == str(tmp_path / "pdvc_output")
     assert cfg.source == str(p.resolve())
 
@@ -117,7 +119,7 @@ def test_write_then_load_gives_an_equal_config(tmp_path, raw):
     assert again == cfg
     # fully resolved: the written file carries every default
     text = path.read_text()
-    for key in ("max_outer", "fix_scale", "volume_format", "clip_min", "offset"):
+    for key in ("recipe", "fix_scale", "volume_format", "clip_min", "offset"):
         assert key in text
     # and writing again gives the same text (stable)
     assert write_config(tmp_path / "again.toml", again).read_text() == text
@@ -195,7 +197,7 @@ def test_key_of_another_geometry_type_is_named(tmp_path):
         ("preprocess", "bin", 1.5, r"preprocess\.bin must be an integer, got 1\.5 \(float\)"),
         ("preprocess", "roi_rows", [5, 2], r"preprocess\.roi_rows must be a range \[a, b\)"),
         ("preprocess", "clip_min", 1.0, r"preprocess\.clip_min must be below 1"),
-        ("calibration", "basis", "fourier", r"calibration\.basis must be 'dirac'"),
+        ("calibration", "basis", "fourier", r"calibration\.basis must be one of 'dirac'"),
         ("calibration", "fixed", ["tx", "yaw"], r"calibration\.fixed\[1\] must be one of 'tx'"),
         ("calibration", "scales", [2, 4], r"calibration\.scales must be strictly decreasing"),
         ("calibration", "max_outer", 0, r"calibration\.max_outer must be an integer >= 1, got 0"),

@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pdvc.calibration import drift_basis, self_calibrate
-from pdvc.correlation import correlate, shannon_entropy, snr_db, view_angles
+from pdvc.calibration import recipe_stages, self_calibrate, stages_from_dicts
+from pdvc.correlation import correlate, shannon_entropy, snr_db
 from pdvc.geometry import fix_gauge, reprojection_error
 from pdvc.projectors import forward
 from pdvc.recon import fbp, fdk
@@ -60,6 +60,69 @@ def _quality(case, out):
     return snr, ent
 
 
+def _stages_from_toml(text, recipe, det_shape, **params):
+    """The stage list spelt out as ``[[calibration.stage]]`` tables; it must be the named recipe's."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover
+        import tomli as tomllib
+    stages = stages_from_dicts(tomllib.loads(text)["calibration"]["stage"])
+    assert stages == recipe_stages(recipe, det_shape, scales=(1,), **params)
+    return stages
+
+
+# The recipes as a user writes them in a config file (every other field at its default).
+DEFAULT_12 = """
+[[calibration.stage]]
+name = "warmup"
+basis = "drift"
+frame = "lab"
+fixed = ["rx", "ry", "rz"]
+until = "rounds"
+rounds = 1
+guards = []
+stall_ratio = 0
+
+[[calibration.stage]]
+name = "model"
+basis = "fourier:1"
+frame = "sample"
+fixed = ["rz"]
+rounds = 11
+"""
+
+PRECESSION = """
+[[calibration.stage]]
+name = "warmup"
+basis = "drift"
+frame = "lab"
+fixed = ["rx", "ry", "rz"]
+reconstruct = "nonneg_ls"
+until = "rounds"
+rounds = 1
+guards = []
+stall_ratio = 0
+
+[[calibration.stage]]
+name = "model"
+basis = "drift"
+frame = "lab"
+fixed = ["rz"]
+reconstruct = "nonneg_ls"
+guards = ["consistency", "entropy"]
+rounds = 7
+"""
+
+JOLTS = """
+[[calibration.stage]]
+name = "model"
+basis = "dirac"
+frame = "lab"
+fixed = ["rx", "ry", "rz", "ty"]
+rounds = 8
+"""
+
+
 # --------------------------------------------------------------------------
 # smooth motions
 # --------------------------------------------------------------------------
@@ -69,7 +132,8 @@ def test_tilted_axis_reaches_a_twentieth_of_a_pixel():
     # 0.056, 0.051, 0.046, 0.044, 0.042), stopped when the increments grew again.
     case = _case("tilted_axis")
     assert _error_px(case, case.scan.geometry) == pytest.approx(2.0, abs=0.05)
-    out = self_calibrate(case.scan.projections, case.scan.geometry, case.vol_geom, n_outer=12)
+    stages = _stages_from_toml(DEFAULT_12, "default", case.scan.geometry.det_shape, max_outer=12)
+    out = self_calibrate(case.scan.projections, case.scan.geometry, case.vol_geom, stages=stages)
     assert out.success, out.message
     assert _error_px(case, out.geometry) <= 0.05
     (s0, s1), (e0, e1) = _quality(case, out)
@@ -85,14 +149,12 @@ def test_precession_drift_reaches_a_twentieth_of_a_pixel(seed):
     # and the entropy guard that stops the walk along the near-gauge rotation modes.
     # Measured (seeds 0, 1, 2): warm-up 0.067 px, model round 0.028 / 0.026 / 0.025 px, then
     # the entropy rises by 0.08–0.15 % (tolerated: 0.3 %), after the next round by 0.7–0.9 %: stopped
-    # (status 4) with the poses before that round.
+    # (ENTROPY_GUARD) with the poses before that round.
     case = _case("precession_drift", seed=seed)
     geom = case.scan.geometry
     assert _error_px(case, geom) == pytest.approx(1.02, abs=0.03)
-    out = self_calibrate(
-        case.scan.projections, geom, case.vol_geom, basis=drift_basis(view_angles(geom)), frame="lab",
-        reconstruct="nonneg_ls", guard="entropy", n_outer=8,
-    )
+    stages = _stages_from_toml(PRECESSION, "precession", geom.det_shape)
+    out = self_calibrate(case.scan.projections, geom, case.vol_geom, stages=stages)
     assert out.success, out.message
     assert _error_px(case, out.geometry) <= 0.05
     (s0, s1), (e0, e1) = _quality(case, out)
@@ -107,7 +169,7 @@ def test_precession_drift_with_the_default_recipe_converges_without_diverging():
     # harmonic, so the 0.3° precession is not recovered at all (the error is that precession).
     case = _case("precession_drift")
     assert _error_px(case, case.scan.geometry) == pytest.approx(1.02, abs=0.02)
-    out = self_calibrate(case.scan.projections, case.scan.geometry, case.vol_geom, n_outer=12)
+    out = self_calibrate(case.scan.projections, case.scan.geometry, case.vol_geom, max_outer=12)
     assert out.success, out.message
     assert _error_px(case, out.geometry) <= 0.1
     (s0, s1), (e0, e1) = _quality(case, out)
@@ -121,17 +183,16 @@ def test_precession_drift_with_the_default_recipe_converges_without_diverging():
 @pytest.mark.parametrize("method", ["full", "pgd"])
 def test_jolts_with_free_temporal_modes(method):
     # 0.2° tilt + 1 voxel offset + two sudden jumps (1.3 and 1.1 voxels): nominal 1.58 px.
-    # Smooth warm-up (0.25 px: the jumps are not smooth), then per-view translations in the
-    # lab frame (the along-beam one fixed: it only changes the magnification).
+    # The jolts recipe: per-view translations in the lab frame (the along-beam one fixed: it only
+    # changes the magnification); no rotation is free, so no warm-up runs.
     # Measured: full 0.0556 px, PGD (Dirac basis, up to 4 modes) 0.0557 px; SNR 14.7 -> 30.5 dB,
     # entropy 5.67 -> 4.96 bits.
     case = _case("jolts")
     assert _error_px(case, case.scan.geometry) == pytest.approx(1.58, abs=0.02)
-    extra = dict(max_modes=4) if method == "pgd" else {}
-    out = self_calibrate(
-        case.scan.projections, case.scan.geometry, case.vol_geom, basis="dirac", frame="lab",
-        fixed=("rx", "ry", "rz", "ty"), method=method, n_outer=8, **extra,
-    )
+    stages = _stages_from_toml(JOLTS, "jolts", case.scan.geometry.det_shape)
+    if method == "pgd":
+        stages = tuple(s.replace(method="pgd", max_modes=4) for s in stages)
+    out = self_calibrate(case.scan.projections, case.scan.geometry, case.vol_geom, stages=stages)
     assert _error_px(case, out.geometry) <= 0.15
     (s0, s1), (e0, e1) = _quality(case, out)
     assert s1 > s0 + 3.0
@@ -146,8 +207,8 @@ def test_full_identification_and_pgd_agree_on_a_smooth_case():
     # the two geometries differ by 0.057 px.
     case = _case("offset")
     p, geom, vg = case.scan.projections, case.scan.geometry, case.vol_geom
-    full = self_calibrate(p, geom, vg, warmup=0, n_outer=6)
-    pgd = self_calibrate(p, geom, vg, warmup=0, n_outer=6, method="pgd", max_modes=3, noise_floor=0.0, min_gain=1e-4)
+    full = self_calibrate(p, geom, vg, warmup=0, max_outer=6)
+    pgd = self_calibrate(p, geom, vg, warmup=0, max_outer=6, method="pgd", max_modes=3, noise_floor=0.0, min_gain=1e-4)
     assert _error_px(case, full.geometry) <= 0.05
     assert _error_px(case, pgd.geometry) <= 0.1
     assert reprojection_error(pgd.geometry, full.geometry, case.points).rms <= 0.1
@@ -156,7 +217,7 @@ def test_full_identification_and_pgd_agree_on_a_smooth_case():
 def test_pgd_mode_table_stagnates_after_the_first_mode():
     # Paper Table 1: the first mode carries the motion, the next ones hardly raise the SNR.
     # Measured (tilted_axis, nominal reconstruction, fourier:1): 13.00 -> 19.46 -> 19.47 -> 19.47 dB.
-    from pdvc.calibration._outer import refined_grid
+    from pdvc.calibration import refined_grid
 
     case = _case("tilted_axis")
     geom = case.scan.geometry
@@ -181,7 +242,7 @@ def test_pgd_mode_table_stagnates_after_the_first_mode():
 def test_parallel_beam_reports_the_beam_translation_unobservable():
     case = _case("offset", kind="parallel")
     geom = case.scan.geometry
-    out = self_calibrate(case.scan.projections, geom, case.vol_geom, frame="lab", n_outer=4)
+    out = self_calibrate(case.scan.projections, geom, case.vol_geom, frame="lab", max_outer=4)
     obs = out.result.observability
     assert obs.directions, "no unobservable direction reported"
     # the weakest reported direction is a lab translation along the beam (ty)

@@ -1,33 +1,65 @@
-"""Calibration: the pipeline (:func:`calibrate`), what moved (axis, precession, drift, jolts) and coarse initialisation.
+"""Calibration: stages and recipes, the driver, the pipeline, what moved, coarse initialisation.
 
+* :class:`Stage` is one part of a calibration as data; :func:`recipe_stages`
+  gives the named recipes (``default``, ``precession``, ``jolts``,
+  ``axis``); :func:`run_stages` runs a list of stages;
+* :func:`calibrate` is the pipeline (coarse initialisation, stages, final
+  volume on the user's grid, the check against nominal, metrics);
+  :func:`self_calibrate` runs a recipe at the data's own scale;
 * :func:`describe_motion` reads the rotation axis (tilt, offset), its
-  precession, the drift and jolts of the set-up off the per-view poses,
-  in the lab frame, with the detector displacements of the sample's axis
-  points (paper Figs 6 and 14);
+  precession, the drift and jolts of the set-up off the per-view poses;
 * :func:`estimate_axis_offset` finds a large centre-of-rotation offset by
   cross-correlating opposite views, and :func:`offset_poses` turns it into
-  per-view poses for the engine to start from.
+  per-view poses.
+
+The method and the reasons behind each default: ``docs/method.md``.
 """
 
+from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
-from ._pipeline import GAUGE, CalibrationError, CalibrationResult, auto_scales, calibrate, per_view_snr, reconstruct
+from ._driver import DriverResult, StageOutcome, reconstruct, refined_grid, run_stages
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
-from ._outer import OUTER_STATUS, RECONSTRUCTORS, OuterError, OuterResult, drift_basis, self_calibrate
+from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
+from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages
+from ._stages import (
+    GUARDS,
+    RECIPES,
+    RECONSTRUCTIONS,
+    Stage,
+    StageError,
+    auto_scales,
+    recipe_stages,
+    stages_from_dicts,
+    stages_to_dicts,
+    warmup_stage,
+)
 
 __all__ = [
+    "Stage",
+    "StageError",
+    "RECIPES",
+    "RECONSTRUCTIONS",
+    "GUARDS",
+    "recipe_stages",
+    "warmup_stage",
+    "stages_from_dicts",
+    "stages_to_dicts",
+    "auto_scales",
+    "resolve_stages",
+    "run_stages",
+    "DriverResult",
+    "StageOutcome",
+    "refined_grid",
+    "reconstruct",
     "self_calibrate",
     "OuterResult",
     "OuterError",
-    "OUTER_STATUS",
-    "RECONSTRUCTORS",
+    "gauge_text",
     "drift_basis",
     "calibrate",
     "CalibrationResult",
     "CalibrationError",
-    "GAUGE",
-    "auto_scales",
     "per_view_snr",
-    "reconstruct",
     "MotionSummary",
     "describe_motion",
     "AxisOffsetEstimate",

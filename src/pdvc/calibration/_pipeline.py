@@ -1,25 +1,18 @@
-"""The calibration a user runs: scales, coarse initialisation, outer loop,
-final reconstruction, metrics and (optionally) the output folder.
+"""The calibration a user runs: coarse initialisation, the stages, the final volume, the checks, the metrics.
 
-This is the only module that knows the order of the stages::
+This is the only module that knows the order::
 
     projections + nominal geometry
       -> coarse initialisation (axis offset from opposite views, when the scan has them)
-      -> for each scale s (coarse to fine): coarse-grained projections, binned grid,
-         outer loop reconstruct -> correlate -> gauge (``self_calibrate``)
-      -> final reconstruction at the finest scale with the calibrated geometry
-      -> metrics (per-view SNR, entropy before/after), what moved (``describe_motion``)
+      -> the stage list (a recipe, or stages given) run by :func:`run_stages`
+      -> final reconstruction on the user's grid, at full resolution
+      -> never worse than nominal: the calibrated geometry must fit the data better
+      -> metrics (per-view SNR, entropy), what moved (``describe_motion``) and the
+         assessment of the poses kept (uncertainty, observability, motion modes)
 
 Writing files is not done here (the calibration layer imports no io or
-report code): ``checkpoint`` is called after every outer iteration with the
-state that ``resume`` takes back; :func:`pdvc.calibrate` wires both to an
-output folder.
-
-Gauge: the poses are relative to the nominal geometry and fixed by
-:func:`pdvc.geometry.fix_gauge` — zero mean rigid pose over the views about
-the volume centre, and, in cone beam, zero mean magnification change (the
-nominal source–object distance is the mean one, i.e. the voxel size stays
-the nominal one). Every output states it.
+report code): ``checkpoint`` is called after every round with the state that
+``resume`` takes back; :func:`pdvc.calibrate` wires both to an output folder.
 """
 
 from __future__ import annotations
@@ -31,26 +24,22 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..correlation import coarse_grain, coarse_noise_factor, estimate_noise_variance, shannon_entropy, snr_db
-from ..correlation._engine import CorrelationResult
+from ..correlation import Assessment, assess, coarse_volume, estimate_noise_variance, shannon_entropy, snr_db
 from ..errors import PdvcError, ShapeError
-from ..geometry import VectorGeometry, VolumeGeometry, fix_gauge
+from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
-from ..recon import fbp, fdk
+from ..status import Status
+from ._driver import reconstruct, run_stages
+from ._outer import gauge_text
+from ._stages import Stage, StageError, recipe_stages
 
 log = logging.getLogger("pdvc.calibration")
 
-__all__ = ["calibrate", "CalibrationResult", "CalibrationError", "GAUGE", "reconstruct", "auto_scales", "per_view_snr"]
-
-GAUGE = (
-    "poses relative to the nominal geometry; gauge: zero mean rigid pose over the views "
-    "(mean rotation = identity, mean position of the volume centre unchanged) and, in cone beam, "
-    "zero mean magnification change (the nominal source-object distance is the mean one)"
-)
+__all__ = ["calibrate", "CalibrationResult", "CalibrationError", "reconstruct", "per_view_snr", "resolve_stages"]
 
 
 class CalibrationError(PdvcError, ValueError):
-    """The calibration cannot run or did not converge in a usable way."""
+    """The calibration cannot run with the inputs or options given."""
 
 
 @dataclass(frozen=True)
@@ -60,44 +49,49 @@ class CalibrationResult:
     Attributes
     ----------
     geometry : VectorGeometry
-        The calibrated per-view geometry at full detector resolution.
+        The geometry returned, at full detector resolution: the calibrated
+        one, or the nominal one when the calibration fitted the data worse
+        (``status`` ``WORSE_THAN_NOMINAL``).
     nominal : VectorGeometry
-        The geometry given.
-    rotvecs, translations : (n_views, 3)
-        Poses of the sample relative to ``nominal`` (``apply_poses``
-        convention), gauge fixed as stated in ``gauge``.
-    engine : CorrelationResult
-        The last P-DVC result (finest scale, last outer iteration).
+    poses : Poses
+        ``geometry`` as poses relative to ``nominal``, gauge fixed (``gauge``).
+    assessment : Assessment or None
+        The measurement at the poses returned: uncertainties, unobservable
+        directions, motion modes (free and constrained histories).
     history : tuple of dict
-        One entry per outer iteration over all scales: scale, iteration,
-        chi before/after, SNR, increment (px, full-resolution pixels).
+        One entry per round of every stage (:class:`DriverResult`).
+    stages : tuple of Stage
+        The stage list that ran.
+    stage_outcomes : tuple of StageOutcome
     volume, volume_initial : (nz, ny, nx) float32
-        Reconstructions with the calibrated and with the nominal geometry on
-        ``vol_geom`` (the finest scale requested).
+        Reconstructions with ``geometry`` and with ``nominal`` on ``vol_geom``,
+        the grid the user asked for.
     vol_geom : VolumeGeometry
     snr_before, snr_after : (n_views,) float
         Per-view SNR (dB) of the projections against the re-projection of
-        ``volume_initial`` (nominal geometry) and of ``volume`` (calibrated).
+        ``volume_initial`` and of ``volume``.
     entropy_before, entropy_after : float
         Shannon entropy (bits) of the two volumes on a common gray range.
-    motion : object
-        What moved (``describe_motion``), or None when unavailable.
+    motion : MotionSummary or None
     initial_offset_px : float or None
         The coarse axis-offset estimate used to start, in detector pixels.
-    gauge : str
-    scales : tuple of int
-    status : int
-        > 0 converged; 0 stopped at the iteration cap; < 0 failed.
+    status : Status
+        ``success`` is false when a stage diverged or did not converge, or
+        when the result fitted the data worse than the nominal geometry.
     message : str
-    elapsed_s : float
+    timings : dict
+        Seconds per step (``init``, ``stages``, each stage, ``final``).
+    rejected_geometry : VectorGeometry or None
+        The calibrated geometry that was rejected for fitting worse than nominal.
     """
 
     geometry: VectorGeometry
     nominal: VectorGeometry
-    rotvecs: np.ndarray
-    translations: np.ndarray
-    engine: CorrelationResult
+    poses: Poses
+    assessment: Optional[Assessment]
     history: tuple
+    stages: tuple
+    stage_outcomes: tuple
     volume: np.ndarray
     volume_initial: np.ndarray
     vol_geom: VolumeGeometry
@@ -108,31 +102,24 @@ class CalibrationResult:
     motion: object
     initial_offset_px: Optional[float]
     gauge: str
-    scales: tuple
-    status: int
+    status: Status
     message: str
     elapsed_s: float
     options: dict = field(default_factory=dict)
-    projections_fine: Optional[np.ndarray] = None  # the coarse-grained data of the last scale, when s > 1
+    timings: dict = field(default_factory=dict)
+    rejected_geometry: Optional[VectorGeometry] = None
 
+    @property
+    def success(self) -> bool:
+        return Status(self.status).success
 
-def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) -> np.ndarray:
-    """FDK for cone beam, FBP for parallel beam (the pipeline's reconstruction)."""
-    return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom, **kw)
+    @property
+    def rotvecs(self) -> np.ndarray:
+        return self.poses.rotvecs
 
-
-def auto_scales(det_shape) -> tuple:
-    """Default coarse-to-fine schedule: coarse enough for ~64+ px, down to 1.
-
-    Large detectors start at 4 and stop at 2 (the paper's 4 -> 2); small
-    ones (under 256 columns) run 2 -> 1, tiny ones (under 128) 1 only.
-    """
-    n = min(det_shape[1], max(det_shape[0], 1) * 4)  # thin detectors (a few rows) count by columns
-    if n >= 512:
-        return (4, 2)
-    if n >= 128:
-        return (2, 1)
-    return (1,)
+    @property
+    def translations(self) -> np.ndarray:
+        return self.poses.translations
 
 
 def per_view_snr(projections, volume, vol_geom, geom, *, weights=None) -> np.ndarray:
@@ -141,14 +128,27 @@ def per_view_snr(projections, volume, vol_geom, geom, *, weights=None) -> np.nda
     res = p - forward(volume, vol_geom, geom)
     if weights is not None:
         w = np.broadcast_to(np.asarray(weights, np.float32), p.shape) > 0
-        out = np.empty(p.shape[0])
-        for k in range(p.shape[0]):
-            out[k] = snr_db(p[k][w[k]], res[k][w[k]])
-        return out
+        return np.array([snr_db(p[k][w[k]], res[k][w[k]]) for k in range(p.shape[0])], float)
     return np.asarray(snr_db(p, res, axis=(1, 2)), float)
 
 
-def _validate(projections, geom, vol_geom):
+def resolve_stages(det_shape, *, recipe="default", stages=None, scales="auto", max_outer=None, warmup=1, **model) -> tuple:
+    """The stage list a calibration runs: ``stages`` as given, or the recipe's with the model overrides."""
+    try:
+        if stages is not None:
+            if model or scales != "auto" or max_outer is not None:
+                given = sorted(k for k in model) + [k for k, v in (("scales", scales != "auto"), ("max_outer", max_outer is not None)) if v]
+                raise CalibrationError(f"stages= is given: set {given} in the stages instead")
+            out = tuple(stages)
+            if not out or not all(isinstance(s, Stage) for s in out):
+                raise CalibrationError("stages must be a non-empty sequence of pdvc.calibration.Stage")
+            return out
+        return recipe_stages(recipe, det_shape, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+    except StageError as exc:
+        raise CalibrationError(str(exc)) from None
+
+
+def _validate(projections, geom, vol_geom, weights):
     if not isinstance(geom, VectorGeometry):
         raise CalibrationError(f"geom must be a VectorGeometry, got {type(geom).__name__}")
     if not isinstance(vol_geom, VolumeGeometry):
@@ -159,8 +159,7 @@ def _validate(projections, geom, vol_geom):
             f"projections must have shape (n_views, n_rows, n_cols) = {(geom.n_views,) + tuple(geom.det_shape)} "
             f"to match the geometry, got {p.shape}"
         )
-    if not np.issubdtype(p.dtype, np.floating):
-        p = p.astype(np.float32)
+    p = np.asarray(p, np.float32)
     bad = ~np.isfinite(p)
     if bad.any():
         views = np.nonzero(bad.any(axis=(1, 2)))[0]
@@ -168,6 +167,12 @@ def _validate(projections, geom, vol_geom):
             f"projections contain {int(bad.sum())} NaN/Inf values (first in view {int(views[0])}); "
             "expected finite line integrals: check the flat/dark normalisation"
         )
+    if weights is not None:
+        w = np.asarray(weights, np.float32)
+        if w.shape[-2:] != tuple(geom.det_shape):
+            raise ShapeError(f"weights must have the detector shape {tuple(geom.det_shape)}, got {w.shape}")
+        if not (w > 0).any():
+            raise CalibrationError("weights (detector ROI) select no pixel; expected a non-empty region")
     return p
 
 
@@ -176,25 +181,23 @@ def calibrate(
     geom: VectorGeometry,
     vol_geom: VolumeGeometry,
     *,
-    basis="fourier:1",
-    method: str = "full",
-    frame: str = "sample",
-    fixed=("rz",),
+    recipe: str = "default",
+    stages=None,
     scales="auto",
-    oversample: int = 2,
-    n_outer: int = 10,
-    tol_px: float = 0.01,
+    max_outer: Optional[int] = None,
+    warmup: int = 1,
     init: str = "auto",
     fix_scale: bool = True,
     weights=None,
     noise_variance: Optional[float] = None,
     times=None,
-    initial_rotvecs=None,
-    initial_translations=None,
+    center=None,
+    backend: str = "auto",
+    initial_poses: Optional[Poses] = None,
     checkpoint: Optional[Callable[[dict], None]] = None,
     resume: Optional[dict] = None,
     progress: Optional[Callable[[dict], None]] = None,
-    **correlate_options,
+    **model,
 ) -> CalibrationResult:
     """Calibrate a scan from its own projections.
 
@@ -205,236 +208,211 @@ def calibrate(
     geom : VectorGeometry
         Nominal per-view geometry.
     vol_geom : VolumeGeometry
-        Reconstruction grid at full resolution.
-    basis, method, frame, fixed
-        P-DVC model (see :func:`pdvc.correlate`). ``fixed=("rz",)`` trusts
-        the rotation stage's angles: with FDK in the loop a per-view
-        rotation about the axis is nearly absorbed by the reconstruction.
-    scales : "auto" or sequence of int
-        Coarse-to-fine schedule of the outer loop (see :func:`auto_scales`).
-        The final reconstruction is at the last (finest) scale.
-    oversample : int
-        The volume used for correlation has ``oversample`` x finer voxels
-        than the reconstruction grid at that scale, so the interpolating
-        projector's own blur does not bias the poses.
-    n_outer : int
-        Outer iterations (reconstruct, correlate) per scale at most.
-    tol_px : float
-        Stop a scale when an outer iteration moves no sample point by more
-        than this on the detector (full-resolution pixels).
+        Reconstruction grid at full resolution; the final volume is on it.
+    recipe : {"default", "precession", "jolts", "axis"}
+        The named stage list (:func:`pdvc.calibration.recipe_stages`).
+    stages : sequence of Stage, optional
+        A stage list to run instead of a recipe.
+    scales, max_outer, warmup, **model
+        Recipe parameters: coarse-to-fine scales (``"auto"``: from the
+        detector), rounds per scale, warm-up rounds, and fields of the model
+        stage (``basis``, ``frame``, ``fixed``, ``method``, ``reconstruct``,
+        ``oversample``, ``tol_px``, ``max_iter``, ...; :class:`Stage`).
     init : {"auto", "axis", "none"}
         Coarse initialisation: the axis offset from opposite views by
-        cross-correlation (needs views ~180° apart), so that offsets of tens
-        of pixels converge. "auto" uses it when such pairs exist.
+        cross-correlation (needs views ~180° apart). "auto" uses it when
+        such pairs exist.
     fix_scale : bool
         Cone beam: also fix the magnification gauge (mean source-object
         distance = nominal); see :func:`pdvc.geometry.fix_gauge`.
     weights : (n_rows, n_cols) array, optional
         Detector ROI / weights at full resolution.
-    checkpoint : callable, optional
-        Called after every outer iteration and every scale with a dict
-        (rotvecs, translations, history, scale_index, rounds_done,
-        offset_px) — the state ``resume`` accepts.
-    resume : dict, optional
-        A state given to ``checkpoint`` by an interrupted run: continue it.
+    initial_poses : Poses, optional
+        Where to start instead of the coarse initialisation.
+    checkpoint, resume
+        ``checkpoint(state)`` after every round; ``resume=state`` continues
+        an interrupted run from such a state.
     progress : callable, optional
-        Called with a dict ``{"stage", "scale", "iteration", ...}``.
-    **correlate_options
-        Passed to the engine (e.g. ``max_iter``, ``max_modes``).
+        Called with a dict ``{"event": ...}`` at every step.
 
     Returns
     -------
     CalibrationResult
+        ``status.success`` is false when the run diverged, did not
+        converge, or fitted the data worse than the nominal geometry (then
+        the nominal geometry is returned).
     """
-    from ._outer import self_calibrate
-
     t_start = time.perf_counter()
-    p = _validate(projections, geom, vol_geom)
-    sched = auto_scales(geom.det_shape) if scales == "auto" else tuple(int(s) for s in scales)
-    if not sched or any(s < 1 for s in sched):
-        raise CalibrationError(f"scales must be 'auto' or positive ints coarse to fine, got {scales!r}")
+    p = _validate(projections, geom, vol_geom, weights)
     if init not in ("auto", "axis", "none"):
         raise CalibrationError(f"init must be 'auto', 'axis' or 'none', got {init!r}")
-    if not (isinstance(n_outer, (int, np.integer)) and n_outer >= 1):
-        raise CalibrationError(f"n_outer must be a positive int, got {n_outer!r}")
-    if not (isinstance(oversample, (int, np.integer)) and oversample >= 1):
-        raise CalibrationError(f"oversample must be a positive int, got {oversample!r}")
-    if weights is not None:
-        w = np.asarray(weights, np.float32)
-        if w.shape[-2:] != tuple(geom.det_shape):
-            raise ShapeError(f"weights must have the detector shape {tuple(geom.det_shape)}, got {w.shape}")
-        if not (w > 0).any():
-            raise CalibrationError("weights (detector ROI) select no pixel; expected a non-empty region")
-    options = dict(
-        basis=basis if isinstance(basis, str) else "custom", method=method, frame=frame, fixed=list(fixed),
-        scales=list(sched), oversample=int(oversample), n_outer=int(n_outer), tol_px=float(tol_px), init=init,
-    )
-
-    def emit(**info):
-        if progress is not None:
-            progress(info)
-
-    c = np.asarray(vol_geom.offset, float)
-    n = geom.n_views
-    rv = np.zeros((n, 3)) if initial_rotvecs is None else np.array(initial_rotvecs, float).reshape(n, 3)
-    t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
-    history: list = []
-    start_scale_index = 0
-    rounds_done = 0  # outer rounds already done at start_scale_index (resume)
-    offset_px = None
-    if resume is not None:
-        ck = resume
-        if ck:
-            rv = np.array(ck["rotvecs"], float).reshape(n, 3)
-            t = np.array(ck["translations"], float).reshape(n, 3)
-            history, start_scale_index, offset_px = list(ck["history"]), int(ck["scale_index"]), ck["offset_px"]
-            rounds_done = int(ck.get("rounds_done", 0))
-            log.info("resuming from checkpoint: scale index %d, %d outer iterations done", start_scale_index, len(history))
-            emit(stage="resume", scale=sched[min(start_scale_index, len(sched) - 1)], iteration=len(history))
-
-    if start_scale_index == 0 and not history and init != "none" and initial_rotvecs is None and initial_translations is None:
-        from ._init import InitError, estimate_axis_offset, offset_poses
-
-        emit(stage="init")
-        try:
-            est = estimate_axis_offset(p, geom)
-            offset_px = float(est.offset_px)
-            rv, t = offset_poses(geom, offset_px)
-            log.info("coarse initialisation: axis offset %.2f px from %d opposite view pairs", offset_px, est.n_pairs)
-        except InitError as exc:
-            if init == "axis":
-                raise
-            log.info("coarse initialisation skipped: %s", exc)
-
-    # γ² on the full-resolution data (Immerkær's estimator needs white noise), carried to each scale
+    stage_list = resolve_stages(geom.det_shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+    emit = progress if progress is not None else (lambda info: None)
+    timings: dict = {}
+    poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings)
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
 
-    # reconstruction with the nominal geometry at the finest scale (the "before")
-    fine = sched[-1]
-    p_fine, g_fine = (p, geom) if fine == 1 else coarse_grain(p, geom, fine)
-    vg_fine = vol_geom if fine == 1 else vol_geom.binned(fine)
-    emit(stage="reconstruct", what="initial")
-    vol_initial = reconstruct(p_fine, vg_fine, g_fine)
-
-    last = None
-    status, message = 0, "iteration cap reached"
-    for si in range(start_scale_index, len(sched)):
-        s = sched[si]
-        p_s, g_s = (p, geom) if s == 1 else coarse_grain(p, geom, s)
-        vg_s = vol_geom if s == 1 else vol_geom.binned(s)
-        w_s = None
-        if weights is not None:
-            from ..correlation._engine import _coarse_weights
-
-            w_s = np.asarray(weights, np.float32) if s == 1 else _coarse_weights(weights, s, g_s.det_shape)
-
-        def outer_cb(info, s=s):
-            info = dict(info)
-            if "stage" in info:
-                info["phase"] = info.pop("stage")
-            info.update(scale=s)
-            history_entry = {k: info[k] for k in ("iteration", "chi_before", "chi_after", "snr", "increment_px") if k in info}
-            emit(stage="outer", **info)
-            return history_entry
-
-        emit(stage="scale", scale=s, det_shape=g_s.det_shape, volume=vg_s.shape)
-        done_before = rounds_done if si == start_scale_index else 0
-        prior = [dict(h) for h in history]
-
-        def round_checkpoint(rv_k, t_k, hist_k, si=si, s=s, done_before=done_before, prior=prior):
-            if checkpoint is not None:
-                entries = prior + [dict(h, scale=s) for h in hist_k]
-                checkpoint(dict(rotvecs=rv_k, translations=t_k, history=entries, scale_index=si,
-                                rounds_done=done_before + len(hist_k), offset_px=offset_px))
-
-        if done_before >= n_outer:
-            rounds_left = 0
-        else:
-            rounds_left = n_outer - done_before
-        out = None if rounds_left == 0 else self_calibrate(
-            p_s, g_s, vg_s,
-            initial_rotvecs=rv, initial_translations=t,
-            oversample=oversample, basis=basis, method=method, frame=frame, fixed=tuple(fixed),
-            n_outer=rounds_left, tol_px=tol_px / s, weights=w_s, times=times, fix_scale=fix_scale,
-            checkpoint=round_checkpoint,
-            noise_variance=gamma2 * coarse_noise_factor(s),
-            callback=outer_cb, **correlate_options,
-        )
-        if out is not None:
-            rv, t = out.rotvecs, out.translations
-            for h in out.history:
-                entry = dict(h)
-                entry["scale"] = s
-                history.append(entry)
-            last = out
-            status, message = out.status, out.message
+    def state_checkpoint(state):
         if checkpoint is not None:
-            checkpoint(dict(rotvecs=rv, translations=t, history=list(history), scale_index=si + 1, rounds_done=0, offset_px=offset_px))
+            checkpoint(dict(state, offset_px=offset_px))
 
-    # Too large for the linearisation? Two signs, either is enough (no coarse
-    # initialisation having placed the axis first): the last outer iteration still
-    # moves sample points by more than a pixel, or the data consistency of the
-    # reconstruction (chi of a fresh FDK re-projected) stayed far above the noise
-    # (> 3) and fell by less than half over the whole run.
-    if history and status <= 0 and offset_px is None:
-        inc = float(history[-1].get("increment_px", 0.0)) * sched[-1]
-        c0, c1 = float(history[0].get("chi_before", np.nan)), float(history[-1].get("chi_before", np.nan))
-        stuck = np.isfinite(c0) and np.isfinite(c1) and c1 > 3.0 and c1 > 0.5 * c0
-        if inc > max(1.0, 20 * tol_px) or stuck:
-            message = (
-                f"not converged: the last outer iteration moved sample points by {inc:.2f} px and the "
-                f"reconstruction's chi went {c0:.3g} -> {c1:.3g} (1 = noise only); the motion may be too large "
-                f"for the linearisation at scale {sched[0]}: start at a coarser scale "
-                f"(e.g. scales = [{4 * sched[0]}, {2 * sched[0]}, {sched[-1]}]), use init = 'axis', or raise n_outer"
-            )
-            status = min(status, 0)
-            log.warning(message)
-    rv, t = fix_gauge(rv, t, geom, center=c, scale=fix_scale)
-    calibrated = geom.apply_poses(rv, t)
-    emit(stage="reconstruct", what="calibrated")
-    g_fine_cal = calibrated if fine == 1 else calibrated.binned(fine)
-    vol = reconstruct(p_fine, vg_fine, g_fine_cal)
-    snr_before = per_view_snr(p_fine, vol_initial, vg_fine, g_fine)
-    snr_after = per_view_snr(p_fine, vol, vg_fine, g_fine_cal)
+    t0 = time.perf_counter()
+    drv = run_stages(
+        p, geom, vol_geom, stage_list, poses=poses, noise_variance=gamma2, weights=weights, fix_scale=fix_scale,
+        times=times, center=center, backend=backend, start=start, history=history, checkpoint=state_checkpoint,
+        progress=emit,
+    )
+    timings["stages"] = time.perf_counter() - t0
+    for i, o in enumerate(drv.stages):
+        timings[f"stage {i + start[0]} ({o.name}, scale {o.scale})"] = o.elapsed_s
+    status, message = _too_large(drv, offset_px, stage_list)
+    options = dict(recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale))
+    res = _finish(
+        p, geom, vol_geom, drv, stage_list, status, message, gamma2, weights, times, center, backend, fix_scale,
+        emit, timings, dict(initial_offset_px=offset_px, options=options),
+    )
+    res = _replace(res, elapsed_s=time.perf_counter() - t_start)
+    log.info(
+        "calibration done in %.1f s (%s): SNR %.2f -> %.2f dB, entropy %.3f -> %.3f bits",
+        res.elapsed_s, res.status.name.lower(), float(np.mean(res.snr_before)), float(np.mean(res.snr_after)),
+        res.entropy_before, res.entropy_after,
+    )
+    return res
+
+
+def _replace(res, **kw):
+    import dataclasses
+
+    return dataclasses.replace(res, **kw)
+
+
+def _stage_text(s: Stage) -> str:
+    try:
+        d = s.to_dict()
+    except StageError:
+        return f"{s.name} (custom)"
+    return ", ".join(f"{k}={v}" for k, v in d.items())
+
+
+def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings):
+    """(poses, history, (stage index, rounds done), coarse offset) to start from."""
+    if resume:
+        log.info("resuming from checkpoint: stage %d, %d rounds done", resume["stage_index"], len(resume["history"]))
+        emit(dict(event="resume", stage_index=int(resume["stage_index"]), rounds=len(resume["history"])))
+        return (resume["poses"], list(resume["history"]), (int(resume["stage_index"]), int(resume.get("rounds_done", 0))),
+                resume.get("offset_px"))
+    if initial_poses is not None:
+        if not isinstance(initial_poses, Poses) or initial_poses.n_views != geom.n_views:
+            raise CalibrationError(f"initial_poses must be a pdvc.geometry.Poses of {geom.n_views} views")
+        return initial_poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale), [], (0, 0), None
+    if init == "none":
+        return None, [], (0, 0), None
+    from ._init import InitError, estimate_axis_offset, offset_poses
+
+    emit(dict(event="init"))
+    t0 = time.perf_counter()
+    try:
+        est = estimate_axis_offset(p, geom)
+    except InitError as exc:
+        if init == "axis":
+            raise
+        log.info("coarse initialisation skipped: %s", exc)
+        return None, [], (0, 0), None
+    finally:
+        timings["init"] = time.perf_counter() - t0
+    log.info("coarse initialisation: axis offset %.2f px from %d opposite view pairs", est.offset_px, est.n_pairs)
+    return Poses(*offset_poses(geom, float(est.offset_px))), [], (0, 0), float(est.offset_px)
+
+
+def _too_large(drv, offset_px, stages):
+    """The driver's status, or MOTION_TOO_LARGE when the signs say the linearisation could not follow.
+
+    Either sign is enough when no coarse initialisation placed the axis: the
+    last round still moves sample points by more than a pixel, or the data
+    consistency of the reconstruction stayed far above the noise (χ > 3) and
+    fell by less than half over the run.
+    """
+    status, message = drv.status, drv.message
+    hist = drv.history
+    if not hist or status.success or offset_px is not None:
+        return status, message
+    inc = float(hist[-1]["increment_px"])
+    c0, c1 = float(hist[0]["chi_before"]), float(hist[-1]["chi_before"])
+    stuck = np.isfinite(c0) and np.isfinite(c1) and c1 > 3.0 and c1 > 0.5 * c0
+    if inc > max(1.0, 20 * stages[-1].tol_px) or stuck:
+        s0 = stages[0].scale
+        message = (
+            f"{Status.MOTION_TOO_LARGE.message}: the last round moved sample points by {inc:.2f} px and the "
+            f"reconstruction's chi went {c0:.3g} -> {c1:.3g} (1 = noise only); start at a coarser scale "
+            f"(e.g. scales = [{4 * s0}, {2 * s0}, 1]), use init = 'axis', or raise max_outer"
+        )
+        log.warning(message)
+        return Status.MOTION_TOO_LARGE, message
+    return status, message
+
+
+def _finish(p, geom, vol_geom, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra):
+    """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment."""
+    t0 = time.perf_counter()
+    emit(dict(event="reconstruct", what="nominal"))
+    vol_initial = reconstruct(p, vol_geom, geom)
+    poses = drv.poses
+    calibrated = geom.apply(poses)
+    emit(dict(event="reconstruct", what="calibrated"))
+    vol = reconstruct(p, vol_geom, calibrated)
+    snr_before = per_view_snr(p, vol_initial, vol_geom, geom, weights=weights)
+    snr_after = per_view_snr(p, vol, vol_geom, calibrated, weights=weights)
+    rejected = None
+    if np.mean(snr_after) < np.mean(snr_before):
+        rejected = calibrated
+        message = (
+            f"{Status.WORSE_THAN_NOMINAL.message} (mean SNR {np.mean(snr_before):.2f} dB nominal, "
+            f"{np.mean(snr_after):.2f} dB calibrated; the run itself ended with: {message})"
+        )
+        log.warning(message)
+        status = Status.WORSE_THAN_NOMINAL
+        poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
     lo, hi = np.percentile(vol, [0.1, 99.9])
     e_before = shannon_entropy(vol_initial, value_range=(float(lo), float(hi)))
     e_after = shannon_entropy(vol, value_range=(float(lo), float(hi)))
-
+    timings["final"] = time.perf_counter() - t0
     motion = None
     try:
         from ._axis import describe_motion
 
-        motion = describe_motion(geom, rv, t, vol_geom, times=times)
+        motion = describe_motion(geom, poses.rotvecs, poses.translations, vol_geom, times=times)
     except Exception as exc:  # the summary is a report, never a reason to lose the calibration
         log.warning("motion summary unavailable: %s", exc)
-
-    result = CalibrationResult(
-        geometry=calibrated,
-        nominal=geom,
-        rotvecs=rv,
-        translations=t,
-        engine=last.result if last is not None else None,
-        history=tuple(history),
-        volume=vol,
-        volume_initial=vol_initial,
-        vol_geom=vg_fine,
-        snr_before=snr_before,
-        snr_after=snr_after,
-        entropy_before=float(e_before),
-        entropy_after=float(e_after),
-        motion=motion,
-        initial_offset_px=offset_px,
-        projections_fine=p_fine if fine != 1 else None,
-        gauge=GAUGE,
-        scales=sched,
-        status=int(status),
-        message=str(message),
-        elapsed_s=time.perf_counter() - t_start,
-        options=options,
+    emit(dict(event="assess"))
+    t0 = time.perf_counter()
+    assessment = _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend)
+    timings["assess"] = time.perf_counter() - t0
+    return CalibrationResult(
+        geometry=calibrated, nominal=geom, poses=poses, assessment=assessment, history=drv.history, stages=tuple(stages),
+        stage_outcomes=drv.stages, volume=np.asarray(vol, np.float32), volume_initial=np.asarray(vol_initial, np.float32),
+        vol_geom=vol_geom, snr_before=snr_before, snr_after=snr_after, entropy_before=float(e_before),
+        entropy_after=float(e_after), motion=motion, gauge=gauge_text(geom.kind, fix_scale), status=status,
+        message=str(message), elapsed_s=0.0, timings=timings, rejected_geometry=rejected, **extra,
     )
-    log.info(
-        "calibration done in %.1f s: SNR %.2f -> %.2f dB, entropy %.3f -> %.3f bits",
-        result.elapsed_s, float(np.mean(snr_before)), float(np.mean(snr_after)), e_before, e_after,
-    )
-    return result
 
+
+def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend):
+    """The model of the last stage that had to converge, measured at the poses kept, at that stage's scale."""
+    from ..correlation import coarse_grain, coarse_noise_factor, coarse_weights
+
+    model = next((s for s in reversed(stages) if s.until == "converged"), stages[-1])
+    s = model.scale
+    try:
+        if s == 1:
+            data, g, v, vg, w, g2 = p, geom, vol, vol_geom, weights, gamma2
+        else:
+            data, g = coarse_grain(p, geom, s)
+            v, vg = coarse_volume(vol, vol_geom, s)
+            w, g2 = coarse_weights(weights, s, g.det_shape), gamma2 * coarse_noise_factor(s)
+        return assess(
+            v, vg, data, g, poses, basis=model.basis, frame=model.frame, fixed=model.fixed, center=center, weights=w,
+            noise_variance=g2, times=times, rcond=model.rcond, backend=backend,
+        )
+    except PdvcError as exc:  # a report, never a reason to lose the calibration
+        log.warning("assessment of the poses unavailable: %s", exc)
+        return None

@@ -4,22 +4,27 @@
 (temporal bases, or PGD modes one at a time).
 """
 
-from ._bases import TemporalBasis, bspline_basis, custom_basis, dirac_basis, fourier_basis, make_basis, polynomial_basis
-from ._engine import STATUS, CorrelationError, CorrelationResult, Mode, Observability, correlate
+from ._bases import BASIS_NAMES, TemporalBasis, drift_basis, is_basis_name, bspline_basis, custom_basis, dirac_basis, fourier_basis, make_basis, polynomial_basis
+from ._assess import Assessment, assess
+from ._engine import CorrelationError, CorrelationResult, Mode, Observability, correlate
 from ._frames import lab_frames, lab_to_sample_map, view_angles
 from ._metrics import shannon_entropy, snr_db
 from ._noise import estimate_noise_variance, poisson_variance
 from ._roi import cone_artifact_rows, detector_weights
-from ._scales import coarse_grain, coarse_noise_factor, coarse_volume, scale_schedule
+from ._scales import coarse_grain, coarse_noise_factor, coarse_volume, coarse_weights, scale_schedule
 
 __all__ = [
     "correlate",
+    "assess",
+    "Assessment",
     "CorrelationResult",
     "CorrelationError",
     "Mode",
     "Observability",
-    "STATUS",
     "TemporalBasis",
+    "BASIS_NAMES",
+    "is_basis_name",
+    "drift_basis",
     "make_basis",
     "dirac_basis",
     "polynomial_basis",
@@ -38,5 +43,6 @@ __all__ = [
     "coarse_grain",
     "coarse_noise_factor",
     "coarse_volume",
+    "coarse_weights",
     "scale_schedule",
 ]

@@ -42,6 +42,9 @@ from ..errors import InputTypeError, PdvcError, ShapeError
 
 __all__ = [
     "BasisError",
+    "BASIS_NAMES",
+    "is_basis_name",
+    "drift_basis",
     "TemporalBasis",
     "dirac_basis",
     "polynomial_basis",
@@ -355,7 +358,38 @@ def custom_basis(matrix, names=None, *, n_views: int | None = None) -> TemporalB
     return TemporalBasis(mat, names, "custom")
 
 
-_SPEC = re.compile(r"^(dirac|constant|poly:(\d+)|fourier:(\d+)(:nodrift)?|spline:(\d+))$")
+_SPEC = re.compile(r"^(dirac|constant|drift|poly:(\d+)|fourier:(\d+)(:nodrift)?|spline:(\d+))$")
+
+#: The names :func:`make_basis` accepts, for messages.
+BASIS_NAMES = "'dirac', 'constant', 'drift', 'poly:D', 'fourier:M', 'fourier:M:nodrift', 'spline:N'"
+
+
+def is_basis_name(spec) -> bool:
+    """Whether ``spec`` is a basis name that :func:`make_basis` accepts (case and spaces ignored)."""
+    return isinstance(spec, str) and _SPEC.match(spec.strip().lower()) is not None
+
+
+def drift_basis(angles, times=None) -> TemporalBasis:
+    """{1, t, t², cos θ, sin θ}: an offset, a drift with constant acceleration and a shifted axis.
+
+    In the lab frame this also spans a once-per-turn precession of the axis.
+    Falls back to fewer functions when the views cannot determine them (very
+    few views). ``make_basis("drift", ...)`` gives the same.
+    """
+    th = _samples(angles, "angles")
+    n = th.size
+    t = _default_times(n) if times is None else _samples(times, "times", n)
+    for degree, order in ((2, 1), (1, 1), (0, 1), (0, 0)):
+        try:
+            cols = [polynomial_basis(t, degree).matrix] if degree > 0 else [np.ones((n, 1))]
+            names = [f"t^{d}" for d in range(cols[0].shape[1])]
+            if order:
+                cols.append(fourier_basis(th, t, order, drift=False).matrix[:, 1:])
+                names += ["cos1", "sin1"]
+            return custom_basis(np.column_stack(cols), names=names)
+        except BasisError:
+            continue
+    raise BasisError(f"no drift basis can be determined from {n} views")  # pragma: no cover
 
 
 def make_basis(spec, *, angles, times=None) -> TemporalBasis:
@@ -364,7 +398,7 @@ def make_basis(spec, *, angles, times=None) -> TemporalBasis:
     Parameters
     ----------
     spec : str, TemporalBasis or (n_views, n_funcs) array
-        ``"dirac"``, ``"constant"``, ``"poly:D"``, ``"fourier:M"`` (with
+        ``"dirac"``, ``"constant"``, ``"drift"`` (:func:`drift_basis`), ``"poly:D"``, ``"fourier:M"`` (with
         linear drift), ``"fourier:M:nodrift"``, ``"spline:N"`` (cubic, N
         interior knots; see :func:`bspline_basis`); a :class:`TemporalBasis`
         (checked for the number of views and returned as is); or an array
@@ -401,15 +435,14 @@ def make_basis(spec, *, angles, times=None) -> TemporalBasis:
         )
     m = _SPEC.match(spec.strip().lower())
     if m is None:
-        raise BasisError(
-            "spec must be one of 'dirac', 'constant', 'poly:D', 'fourier:M', 'fourier:M:nodrift', "
-            f"'spline:N' (D, M, N non-negative ints), got {spec!r}"
-        )
+        raise BasisError(f"spec must be one of {BASIS_NAMES} (D, M, N non-negative ints), got {spec!r}")
     word = m.group(1)
     if word == "dirac":
         return dirac_basis(n)
     if word == "constant":
         return polynomial_basis(t, 0)
+    if word == "drift":
+        return drift_basis(th, t)
     if m.group(2) is not None:
         return polynomial_basis(t, int(m.group(2)))
     if m.group(3) is not None:

@@ -23,15 +23,15 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..errors import PdvcError, ShapeError
-from ..geometry import VectorGeometry, VolumeGeometry, compose_poses, sample_points
+from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
+from ..status import Status
 from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
 from ._bases import TemporalBasis, make_basis
-from ._frames import lab_frames, lab_to_sample_map, view_angles
+from ._frames import lab_to_sample_map, view_angles
 from ._noise import estimate_noise_variance
-from ._scales import coarse_grain, coarse_noise_factor, coarse_volume
+from ._scales import coarse_grain, coarse_noise_factor, coarse_volume, coarse_weights
 
 __all__ = ["correlate", "CorrelationResult", "Mode", "Observability", "CorrelationError"]
 
@@ -40,18 +40,6 @@ log = logging.getLogger(__name__)
 
 class CorrelationError(PdvcError, ValueError):
     """Bad options for the correlation engine."""
-
-
-# Termination table (scipy.optimize.least_squares style)
-STATUS = {
-    0: "maximum number of iterations reached before convergence",
-    1: "converged: pose increment below tolerance",
-    2: "converged: chi stagnated at its floor",
-    3: "PGD stopped: chi reached the noise floor",
-    4: "PGD stopped: the last mode gained less than the threshold",
-    5: "PGD stopped: maximum number of modes reached",
-    -1: "stopped: chi rises at every damping; motion may be too large for the linearisation, start at a coarser scale",
-}
 
 
 @dataclass(frozen=True)
@@ -150,8 +138,10 @@ class CorrelationResult:
     observability : Observability
     n_iter : int
         Jacobian passes (each is one projection-sized pass over the data).
-    status : int
-        See ``STATUS``; > 0 converged or stopped on purpose.
+    status : pdvc.Status
+        Why it stopped; ``status.success`` (also ``success``) is false for
+        ``MAX_ITER`` (still moving at the cap) and ``NO_DESCENT`` (no damped
+        step lowered χ: never reported as converged).
     message : str
     scale_history : tuple of (scale, chi_start, chi_end, n_iter)
         One entry per scale of a multi-scale run (``scales=``), coarse to
@@ -177,7 +167,7 @@ class CorrelationResult:
     noise_variance: float
     observability: Observability
     n_iter: int
-    status: int
+    status: Status
     message: str
     scale_history: tuple = ()
 
@@ -187,30 +177,20 @@ class CorrelationResult:
 
     @property
     def success(self) -> bool:
-        return self.status > 0
+        return Status(self.status).success
+
+    @property
+    def poses(self) -> Poses:
+        """``rotvecs`` and ``translations`` as one :class:`pdvc.geometry.Poses`."""
+        return Poses(self.rotvecs, self.translations)
 
 
 # ----------------------------------------------------------------------------
 # poses
 # ----------------------------------------------------------------------------
-def _params_to_rt(params: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(τ, ω about c) -> (rotvec, t) of x -> R x + t."""
-    rv = params[:, 3:]
-    R = Rotation.from_rotvec(np.array(rv))
-    t = params[:, :3] + center - R.apply(center)
-    return np.array(rv), t
-
-
-def _rt_to_params(rv: np.ndarray, t: np.ndarray, center: np.ndarray) -> np.ndarray:
-    R = Rotation.from_rotvec(np.array(rv))
-    tau = t - center + R.apply(center)
-    return np.hstack([tau, rv])
-
-
 def _compose_increment(rv, t, delta_params, center):
-    """Current pose P, increment δ measured on the geometry posed by P: P ∘ δ."""
-    drv, dt = _params_to_rt(delta_params, center)
-    return compose_poses(rv, t, drv, dt)
+    """Current pose P, increment δ (parameters about ``center``) measured on the geometry posed by P: P ∘ δ."""
+    return tuple(Poses(rv, t).compose(Poses.from_params(delta_params, center)))
 
 
 # ----------------------------------------------------------------------------
@@ -454,54 +434,15 @@ def correlate(
             initial_rotvecs,
             initial_translations,
         )
-    vol = np.asarray(volume, dtype=np.float32)
-    s = np.asarray(projections, dtype=np.float32)
-    if not isinstance(geom, VectorGeometry) or not isinstance(vol_geom, VolumeGeometry):
-        raise CorrelationError("geom must be a VectorGeometry and vol_geom a VolumeGeometry")
-    n = geom.n_views
-    if s.shape != (n,) + geom.det_shape:
-        raise ShapeError(f"projections must have shape {(n,) + geom.det_shape}, got {s.shape}")
-    if method not in ("full", "pgd"):
-        raise CorrelationError(f"method must be 'full' or 'pgd', got {method!r}")
-    if frame not in ("sample", "lab"):
-        raise CorrelationError(f"frame must be 'sample' or 'lab', got {frame!r}")
-    free = np.ones(6, bool)
-    for name in fixed:
-        if name not in POSE_PARAMETERS:
-            raise CorrelationError(f"fixed must name parameters among {POSE_PARAMETERS}, got {name!r}")
-        free[POSE_PARAMETERS.index(name)] = False
-    if not free.any():
-        raise CorrelationError("fixed leaves no parameter to measure")
     for name, val in (("max_iter", max_iter), ("max_modes", max_modes), ("pgd_passes", pgd_passes), ("mode_iter", mode_iter)):
         if not isinstance(val, (int, np.integer)) or val < 1:
             raise CorrelationError(f"{name} must be a positive int, got {val!r}")
     if not (tol_px > 0):
         raise CorrelationError(f"tol_px must be positive, got {tol_px!r}")
-
-    if angles is None:
-        angles = view_angles(geom)
-    basis_obj = make_basis(basis, angles=np.asarray(angles, float), times=times) if not isinstance(basis, TemporalBasis) else basis
-    if basis_obj.n_views != n:
-        raise CorrelationError(f"basis must have {n} rows (views), got {basis_obj.n_views}")
-    c = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float).reshape(3)
-    radius = 0.5 * float(np.min(vol_geom.extent_xyz))
-    gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(s)
-    if not (gamma2 > 0):
-        raise CorrelationError(f"noise_variance must be positive, got {gamma2!r}")
-    prob = _Problem(
-        volume=vol,
-        vol_geom=vol_geom,
-        projections=s,
-        geom=geom,
-        weights=weights,
-        center=c,
-        T=lab_to_sample_map(geom) if frame == "lab" else None,
-        free=free,
-        scale=_scaling(radius),
-        gamma2=gamma2,
-        backend=backend,
-        points=sample_points(vol_geom, 3, fraction=0.8),
-    )
+    if method not in ("full", "pgd"):
+        raise CorrelationError(f"method must be 'full' or 'pgd', got {method!r}")
+    prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend)
+    s, n, c, gamma2 = prob.projections, geom.n_views, prob.center, prob.gamma2
     rv = np.zeros((n, 3)) if initial_rotvecs is None else np.array(initial_rotvecs, float).reshape(n, 3)
     t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
 
@@ -519,9 +460,9 @@ def correlate(
         rv, t, red, status, var, obs, modes, mode_table = _run_pgd(
             prob, basis_obj, rv, t, red, chi_hist, snr_hist, max_modes, pgd_passes, mode_iter, tol_px, rcond, min_gain, noise_floor, callback
         )
-    params = _rt_to_params(rv, t, c)
-    F = lab_frames(geom)
-    params_lab = np.hstack([np.einsum("kji,kj->ki", F, params[:, :3]), np.einsum("kji,kj->ki", F, params[:, 3:])])
+    poses = Poses(rv, t)
+    params = poses.to_params(c)
+    params_lab = poses.lab_params(geom, c)
     std = _std_sample(prob, var)
     return CorrelationResult(
         geometry=geom.apply_poses(rv, t),
@@ -544,9 +485,45 @@ def correlate(
         observability=obs,
         n_iter=prob.n_pass,
         status=status,
-        message=STATUS[status],
+        message=status.message,
         scale_history=((1, chi_hist[0], chi_hist[-1], prob.n_pass),),
     )
+
+
+def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend):
+    """The checked problem of one measurement (shared by :func:`correlate` and :func:`assess`)."""
+    vol = np.asarray(volume, dtype=np.float32)
+    s = np.asarray(projections, dtype=np.float32)
+    if not isinstance(geom, VectorGeometry) or not isinstance(vol_geom, VolumeGeometry):
+        raise CorrelationError("geom must be a VectorGeometry and vol_geom a VolumeGeometry")
+    n = geom.n_views
+    if s.shape != (n,) + geom.det_shape:
+        raise ShapeError(f"projections must have shape {(n,) + geom.det_shape}, got {s.shape}")
+    if frame not in ("sample", "lab"):
+        raise CorrelationError(f"frame must be 'sample' or 'lab', got {frame!r}")
+    free = np.ones(6, bool)
+    for name in fixed:
+        if name not in POSE_PARAMETERS:
+            raise CorrelationError(f"fixed must name parameters among {POSE_PARAMETERS}, got {name!r}")
+        free[POSE_PARAMETERS.index(name)] = False
+    if not free.any():
+        raise CorrelationError("fixed leaves no parameter to measure")
+    if angles is None:
+        angles = view_angles(geom)
+    basis_obj = make_basis(basis, angles=np.asarray(angles, float), times=times) if not isinstance(basis, TemporalBasis) else basis
+    if basis_obj.n_views != n:
+        raise CorrelationError(f"basis must have {n} rows (views), got {basis_obj.n_views}")
+    c = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float).reshape(3)
+    radius = 0.5 * float(np.min(vol_geom.extent_xyz))
+    gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(s)
+    if not (gamma2 > 0):
+        raise CorrelationError(f"noise_variance must be positive, got {gamma2!r}")
+    prob = _Problem(
+        volume=vol, vol_geom=vol_geom, projections=s, geom=geom, weights=weights, center=c,
+        T=lab_to_sample_map(geom) if frame == "lab" else None, free=free, scale=_scaling(radius), gamma2=gamma2,
+        backend=backend, points=sample_points(vol_geom, 3, fraction=0.8),
+    )
+    return prob, basis_obj
 
 
 def _check_scales(scales) -> tuple:
@@ -557,16 +534,6 @@ def _check_scales(scales) -> tuple:
     if not sched or any(not isinstance(x, (int, np.integer)) or isinstance(x, bool) or x < 1 for x in sched):
         raise CorrelationError(f"scales must be a non-empty sequence of positive ints (coarse to fine), got {scales!r}")
     return tuple(int(x) for x in sched)
-
-
-def _coarse_weights(weights, s: int, det_shape):
-    """Block means of pixel weights, cropped like :func:`coarse_grain`."""
-    if weights is None:
-        return None
-    w = np.asarray(weights, np.float32)
-    nr, nc = det_shape
-    w = w[..., : nr * s, : nc * s]
-    return w.reshape(w.shape[:-2] + (nr, s, nc, s)).mean(axis=(-3, -1))
 
 
 def _correlate_multiscale(sched, volume, vol_geom, projections, geom, options, weights, noise_variance, rv, t):
@@ -582,7 +549,7 @@ def _correlate_multiscale(sched, volume, vol_geom, projections, geom, options, w
         else:
             data, g = coarse_grain(s_full, geom, sc)
             vol, vg = coarse_volume(volume, vol_geom, sc)
-            w = _coarse_weights(weights, sc, g.det_shape)
+            w = coarse_weights(weights, sc, g.det_shape)
             gam = gamma2 * coarse_noise_factor(sc)
         log.info("correlate: scale %d, detector %s, volume %s", sc, g.det_shape, vg.shape)
         res = correlate(vol, vg, data, g, weights=w, noise_variance=gam, initial_rotvecs=rv, initial_translations=t, scales=(1,), **options)
@@ -613,8 +580,9 @@ def _std_sample(prob: _Problem, var_scaled_free: np.ndarray) -> np.ndarray:
 
 
 def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rcond, callback):
+    """Levenberg–Marquardt on the full identification; a step is kept only if χ does not rise."""
     mu = 0.0
-    status = 0
+    status = Status.MAX_ITER
     var = np.full((prob.geom.n_views, int(prob.free.sum())), np.nan)
     obs = Observability()
     it = 0
@@ -626,7 +594,7 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
         step_px = prob.max_displacement_px(rv, t, rv2, t2)
         red2 = prob.reduce(rv2, t2)
         chi2 = prob.chi(red2)
-        if chi2 <= chi_hist[-1] * (1 + 1e-9) or step_px < tol_px:
+        if chi2 <= chi_hist[-1] * (1 + 1e-9):
             rv, t, red = rv2, t2, red2
             chi_hist.append(chi2)
             snr_hist.append(_overall_snr(red))
@@ -635,13 +603,15 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
             if callback is not None:
                 callback(dict(iteration=it, chi=chi2, snr=snr_hist[-1], step_px=step_px, mu=mu))
             if step_px < tol_px:
-                status = 1
+                status = Status.CONVERGED
                 break
         else:
+            # a rejected step is never kept, however small: damp, and give up when damping
+            # has shrunk it below the tolerance (or the damping is absurd) without lowering χ
             mu = max(1e-3, 10 * mu)
-            log.info("iteration %d: chi rose to %.5g; damping mu = %.3g", it, chi2, mu)
-            if mu > 1e6:
-                status = -1
+            log.info("iteration %d: chi rose to %.5g (step %.3g px); damping mu = %.3g", it, chi2, step_px, mu)
+            if step_px < tol_px or mu > 1e6:
+                status = Status.NO_DESCENT
                 break
     return rv, t, red, status, var, obs, it
 
@@ -676,14 +646,14 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
     S = basis.matrix
     modes = []
     table = [(0, chi_hist[-1], snr_hist[-1])]
-    status = 5
+    status = Status.MAX_MODES
     obs = Observability()
     var = np.full((prob.geom.n_views, int(prob.free.sum())), np.nan)
     it = 0
     for m in range(max_modes):
         chi_start = chi_hist[-1]
         if chi_start <= noise_floor:
-            status = 3
+            status = Status.NOISE_FLOOR
             break
         # initial guess: dominant direction of the free per-view solutions
         M, b = prob.framed(red)
@@ -706,7 +676,7 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
             step_px = prob.max_displacement_px(rv, t, rv2, t2)
             red2 = prob.reduce(rv2, t2)
             chi2 = prob.chi(red2)
-            if chi2 > chi_hist[-1] * (1 + 1e-9) and step_px >= tol_px:
+            if chi2 > chi_hist[-1] * (1 + 1e-9):
                 log.info("mode %d: chi rose to %.5g, update rejected", m + 1, chi2)
                 break
             rv, t, red = rv2, t2, red2
@@ -732,11 +702,11 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
         table.append((m + 1, chi_hist[-1], snr_hist[-1]))
         log.info("mode %d: chi %.5g -> %.5g", m + 1, chi_start, chi_hist[-1])
         if chi_start - chi_hist[-1] < min_gain * chi_start:
-            status = 4
+            status = Status.MODES_STAGNATED
             break
     else:
-        status = 5
+        status = Status.MAX_MODES
     if chi_hist[-1] <= noise_floor:
-        status = 3
+        status = Status.NOISE_FLOOR
     _, obs, var = _full_step(prob, basis, red, rcond, 0.0)
     return rv, t, red, status, var, obs, modes, table

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputTypeError, PdvcError, ShapeError
-from ..geometry._vector import _check_det_shape
+from ..geometry import check_det_shape
 from ..geometry import VectorGeometry, VolumeGeometry
 
 __all__ = ["RoiError", "detector_weights", "cone_artifact_rows"]
@@ -26,7 +26,7 @@ class RoiError(PdvcError, ValueError):
 
 
 def _det_shape(det_shape) -> tuple[int, int]:
-    return _check_det_shape(det_shape)
+    return check_det_shape(det_shape)
 
 
 def _range(value, n: int, name: str) -> tuple[int, int]:

@@ -30,7 +30,7 @@ from ..errors import GeometryError, InputTypeError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry
 from ..projectors import bin_projections
 
-__all__ = ["coarse_grain", "coarse_volume", "scale_schedule", "coarse_noise_factor"]
+__all__ = ["coarse_grain", "coarse_volume", "coarse_weights", "scale_schedule", "coarse_noise_factor"]
 
 
 def _scale(scale) -> int:
@@ -219,3 +219,15 @@ def coarse_noise_factor(scale: int, *, sigma: float | None = None) -> float:
     g = gaussian_filter1d(delta, sig, mode="constant") if sig > 0 else delta
     w = np.convolve(g, np.ones(s) / s)
     return float(np.sum(w**2) ** 2)
+
+
+def coarse_weights(weights, s: int, det_shape):
+    """Detector weights at scale ``s``: block means, cropped like :func:`coarse_grain` (None stays None)."""
+    if weights is None:
+        return None
+    w = np.asarray(weights, np.float32)
+    if s == 1:
+        return w
+    nr, nc = det_shape
+    w = w[..., : nr * s, : nc * s]
+    return w.reshape(w.shape[:-2] + (nr, s, nc, s)).mean(axis=(-3, -1))

@@ -71,26 +71,42 @@ that type needs) are required; everything else has the default shown.
     bin = 1                     # bin the projections bin x bin when loading
 
     [calibration]
-    basis = "fourier:1"         # "dirac" | "constant" | "poly:D" | "fourier:M" | "fourier:M:nodrift" | "spline:N"
-    method = "full"             # "full" | "pgd"
-    frame = "sample"            # "sample" | "lab"
-    fixed = ["rz"]              # parameters held at zero, among "tx","ty","tz","rx","ry","rz" (rz: the stage's angles are trusted)
+    recipe = "default"          # "default" (tilted, offset axis; drift) | "precession" (a precessing axis)
+                                # | "jolts" (sudden jumps) | "axis" (a fixed axis only); see docs/method.md
+    # recipe parameters: each changes the recipe's model stage (unset: the recipe's own value)
+    # basis = "fourier:1"       # "dirac" | "constant" | "drift" | "poly:D" | "fourier:M" | "fourier:M:nodrift" | "spline:N"
+    # method = "full"           # "full" | "pgd"
+    # frame = "sample"          # "sample" | "lab"
+    # fixed = ["rz"]            # parameters held at zero, among "tx","ty","tz","rx","ry","rz"
+    # reconstruct = "fdk"       # correlation volume: "fdk" (FBP in parallel beam) | "nonneg_ls" | "cgls"
+    # guards = ["consistency"]  # "consistency" (stop if a fresh reconstruction fits worse) | "entropy"
+    # max_outer = 10            # rounds per scale, warm-up included (precession, jolts: 8)
+    # tol_px = 0.01             # a round moving sample points by less ends the stage (full-resolution px)
+    # max_iter = 30             # Jacobian passes per correlation
+    # max_modes = 5             # PGD: modes at most
+    # pgd_passes = 5            # PGD: alternating passes per mode
+    # min_gain = 0.01           # PGD: stop when a mode lowers chi by less than this fraction
+    # noise_floor = 1.05        # PGD: stop when chi falls below this
+    # rcond = 1e-6              # eigenvalue ratio below which a direction is unobservable
+    # oversample = 2            # correlation grid this many times finer than the reconstruction grid
+    scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
+    warmup = 1                  # translation-only rounds before a model with free rotations, per scale
+    # ... or the whole stage list, one table per stage (then no recipe parameter above):
+    # [[calibration.stage]]
+    # name = "warmup"           # every field of pdvc.calibration.Stage: name, basis, frame, fixed, method,
+    # basis = "drift"           # reconstruct, scale, oversample, rounds, tol_px, until ("converged" |
+    # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
+    # fixed = ["rx", "ry", "rz"]  # max_iter, max_modes, pgd_passes, min_gain, noise_floor, rcond
+    # until = "rounds"
+    # rounds = 1
+    # run settings
     # center = [0.0, 0.0, 0.0]  # centre of the rotation modes [x, y, z] (default: volume centre)
-    scales = "auto"             # coarse-graining scales, strictly decreasing (coarse to fine), e.g. [4, 2]; "auto": from the detector size
-    max_outer = 10              # reconstruction + correlation rounds per scale, at most
-    tol_px = 0.01               # stop when an update moves sample points by less (detector pixels)
-    max_iter = 20               # Jacobian passes per correlation (full identification)
-    max_modes = 5               # PGD: modes at most
-    pgd_passes = 5              # PGD: alternating passes per mode
-    min_gain = 0.01             # PGD: stop when a mode lowers chi by less than this fraction
-    noise_floor = 1.05          # PGD: stop when chi falls below this
-    rcond = 1e-6                # eigenvalue ratio below which a direction is unobservable
     fix_scale = true            # cone beam: keep the nominal mean source distance (gauge)
     backend = "auto"            # projector backend
-    oversample = 2              # correlation grid this many times finer than the reconstruction grid
     init = "auto"               # "auto" | "axis" | "none": axis offset from opposite views first
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
+    # The output folder's config.toml always holds the full stage list that ran.
 
     [output]
     dir = "pdvc_output"         # output folder
@@ -148,7 +164,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 import tomli_w
 
-from ..correlation._bases import _SPEC as _BASIS_SPEC
+from ..correlation import BASIS_NAMES, is_basis_name
 from ..errors import GeometryError, PdvcError
 from ..geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
 from ..projectors import POSE_PARAMETERS
@@ -292,27 +308,47 @@ class PreprocessConfig:
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """``[calibration]``: the P-DVC engine and the outer loop."""
+    """``[calibration]``: the recipe or the stage list, and the run's settings.
 
-    basis: str = "fourier:1"
-    method: str = "full"
-    frame: str = "sample"
-    fixed: tuple[str, ...] = ("rz",)
-    center: Optional[tuple[float, float, float]] = None
+    The recipe parameters (``basis`` ... ``guards``) are None when not set:
+    the recipe's own default applies. ``stage`` holds the
+    ``[[calibration.stage]]`` tables (checked, every field filled) when the
+    stage list is spelt out; the recipe parameters cannot be combined with it.
+    """
+
+    recipe: str = "default"
+    stage: Optional[tuple] = None
+    basis: Optional[str] = None
+    method: Optional[str] = None
+    frame: Optional[str] = None
+    fixed: Optional[tuple[str, ...]] = None
+    reconstruct: Optional[str] = None
+    guards: Optional[tuple[str, ...]] = None
     scales: Union[str, tuple[int, ...]] = "auto"
-    max_outer: int = 10
-    tol_px: float = 0.01
-    max_iter: int = 20
-    max_modes: int = 5
-    pgd_passes: int = 5
-    min_gain: float = 0.01
-    noise_floor: float = 1.05
-    rcond: float = 1e-6
+    max_outer: Optional[int] = None
+    warmup: int = 1
+    tol_px: Optional[float] = None
+    max_iter: Optional[int] = None
+    max_modes: Optional[int] = None
+    pgd_passes: Optional[int] = None
+    min_gain: Optional[float] = None
+    noise_floor: Optional[float] = None
+    rcond: Optional[float] = None
+    oversample: Optional[int] = None
+    center: Optional[tuple[float, float, float]] = None
     fix_scale: bool = True
     backend: str = "auto"
-    oversample: int = 2
     init: str = "auto"
     noise: str = "image"
+
+    def recipe_parameters(self) -> dict:
+        """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
+        out = {k: getattr(self, k) for k in _RECIPE_KEYS if getattr(self, k) is not None}
+        if self.scales != "auto":
+            out["scales"] = tuple(self.scales)
+        if self.warmup != 1:
+            out["warmup"] = self.warmup
+        return out
 
 
 @dataclass(frozen=True)
@@ -351,7 +387,8 @@ class Config:
         return {name: _to_plain(getattr(self, name)) for name in _SECTIONS}
 
     def resolved(
-        self, *, n_views: Optional[int] = None, det_shape=None, vol_geom: Optional[VolumeGeometry] = None, angles=None
+        self, *, n_views: Optional[int] = None, det_shape=None, vol_geom: Optional[VolumeGeometry] = None, angles=None,
+        stages=None,
     ) -> "Config":
         """A copy with what only the data tell filled in.
 
@@ -367,6 +404,10 @@ class Config:
             Replaces ``geometry.angles`` (types cone and parallel) by this
             explicit list (written in degrees), e.g. the angles ``"auto"``
             picked.
+        stages : sequence of pdvc.calibration.Stage, optional
+            The stage list that runs: written out in full as
+            ``[[calibration.stage]]`` tables (the recipe parameters, which
+            made it, are then left out).
         """
         g = self.geometry
         if angles is not None and g.type in ("cone", "parallel"):
@@ -386,7 +427,11 @@ class Config:
         vol = self.volume
         if vol_geom is not None:
             vol = VolumeConfig(tuple(vol_geom.shape), tuple(vol_geom.voxel_size), tuple(vol_geom.offset))
-        return dataclasses.replace(self, geometry=g, volume=vol)
+        cal = self.calibration
+        if stages is not None:
+            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise")}
+            cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
+        return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
 
 def _to_plain(obj):
@@ -670,57 +715,88 @@ def _parse_preprocess(t: _Table) -> PreprocessConfig:
 _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
 
 
+_RECIPE_KEYS = (
+    "basis", "method", "frame", "fixed", "reconstruct", "guards", "max_outer", "tol_px", "max_iter", "max_modes",
+    "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample",
+)
+
+
+def _names(value, where: str, allowed, *, distinct=True) -> tuple:
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(f"{where} must be a list of names among {list(allowed)}, got {_got(value)}")
+    for i, name in enumerate(value):
+        _choice(name, f"{where}[{i}]", allowed)
+    if distinct and len(set(value)) != len(value):
+        raise ConfigError(f"{where} names an entry twice: {list(value)}")
+    return tuple(value)
+
+
 def _parse_calibration(t: _Table) -> CalibrationConfig:
+    from ..calibration import GUARDS, RECIPES, RECONSTRUCTIONS, StageError, stages_from_dicts
+
     w = "calibration."
     d = CalibrationConfig()
-    basis = _string(t.pop("basis", d.basis), w + "basis")
-    if _BASIS_SPEC.match(basis.strip().lower()) is None:
-        raise ConfigError(
-            "calibration.basis must be 'dirac', 'constant', 'poly:D', 'fourier:M', 'fourier:M:nodrift' "
-            f"or 'spline:N' (D, M, N non-negative integers), got {_got(basis)}"
-        )
-    method = _choice(t.pop("method", d.method), w + "method", ("full", "pgd"))
-    frame = _choice(t.pop("frame", d.frame), w + "frame", ("sample", "lab"))
-    fixed = t.pop("fixed", list(d.fixed))
-    if not isinstance(fixed, (list, tuple)):
-        raise ConfigError(f"calibration.fixed must be a list of parameter names, got {_got(fixed)}")
-    for i, name in enumerate(fixed):
-        _choice(name, f"{w}fixed[{i}]", POSE_PARAMETERS)
-    if len(set(fixed)) != len(fixed):
-        raise ConfigError(f"calibration.fixed names a parameter twice: {list(fixed)}")
-    if len(fixed) == 6:
-        raise ConfigError("calibration.fixed holds all six parameters: nothing would be calibrated")
-    center = t.pop("center")
-    center = None if center is None else _triple(center, w + "center")
+    kw: dict = {}
+    basis = t.pop("basis")
+    if basis is not None:
+        if not is_basis_name(basis):
+            raise ConfigError(f"calibration.basis must be one of {BASIS_NAMES} (D, M, N non-negative integers), got {_got(basis)}")
+        kw["basis"] = basis.strip().lower()
+    for key, allowed in (("method", ("full", "pgd")), ("frame", ("sample", "lab")), ("reconstruct", RECONSTRUCTIONS)):
+        val = t.pop(key)
+        if val is not None:
+            kw[key] = _choice(val, w + key, allowed)
+    fixed = t.pop("fixed")
+    if fixed is not None:
+        kw["fixed"] = _names(fixed, w + "fixed", POSE_PARAMETERS)
+        if len(kw["fixed"]) == 6:
+            raise ConfigError("calibration.fixed holds all six parameters: nothing would be calibrated")
+    guards = t.pop("guards")
+    if guards is not None:
+        kw["guards"] = _names(guards, w + "guards", GUARDS)
+    for key, minimum in (("max_outer", 1), ("max_iter", 1), ("max_modes", 1), ("pgd_passes", 1), ("oversample", 1)):
+        val = t.pop(key)
+        if val is not None:
+            kw[key] = _integer(val, w + key, minimum=minimum)
+    for key, rule in (("tol_px", dict(positive=True)), ("min_gain", dict(nonneg=True, hi=1.0)), ("noise_floor", dict(lo=0.0)), ("rcond", dict(positive=True, hi=1.0))):
+        val = t.pop(key)
+        if val is not None:
+            kw[key] = _number(val, w + key, **rule)
     scales = t.pop("scales", d.scales)
     if scales == "auto":
         pass
     elif not isinstance(scales, (list, tuple)) or not scales:
-        raise ConfigError(f"calibration.scales must be a non-empty list of integers, got {_got(scales)}")
+        raise ConfigError(f"calibration.scales must be 'auto' or a non-empty list of integers, got {_got(scales)}")
     else:
         scales = tuple(_integer(s, f"{w}scales[{i}]", minimum=1) for i, s in enumerate(scales))
     if scales != "auto" and any(b >= a for a, b in zip(scales, scales[1:])):
         raise ConfigError(f"calibration.scales must be strictly decreasing (coarse to fine), got {list(scales)}")
+    warmup = _integer(t.pop("warmup", d.warmup), w + "warmup", minimum=0)
+    recipe = _choice(t.pop("recipe", d.recipe), w + "recipe", RECIPES)
+    stage = t.pop("stage")
+    if stage is not None:
+        given = sorted(kw) + (["scales"] if scales != "auto" else []) + (["warmup"] if warmup != d.warmup else [])
+        if given:
+            raise ConfigError(
+                f"calibration.{given[0]} cannot be combined with [[calibration.stage]] tables: "
+                "the stage list is complete; set it in each stage instead"
+            )
+        try:
+            stage = tuple(s.to_dict() for s in stages_from_dicts(stage, "calibration.stage"))
+        except StageError as exc:
+            raise ConfigError(str(exc)) from None
+    center = t.pop("center")
     out = CalibrationConfig(
-        basis=basis.strip().lower(),
-        method=method,
-        frame=frame,
-        fixed=tuple(fixed),
-        center=center,
+        recipe=recipe,
+        stage=stage,
         scales=scales,
-        max_outer=_integer(t.pop("max_outer", d.max_outer), w + "max_outer", minimum=1),
-        tol_px=_number(t.pop("tol_px", d.tol_px), w + "tol_px", positive=True),
-        max_iter=_integer(t.pop("max_iter", d.max_iter), w + "max_iter", minimum=1),
-        max_modes=_integer(t.pop("max_modes", d.max_modes), w + "max_modes", minimum=1),
-        pgd_passes=_integer(t.pop("pgd_passes", d.pgd_passes), w + "pgd_passes", minimum=1),
-        min_gain=_number(t.pop("min_gain", d.min_gain), w + "min_gain", nonneg=True, hi=1.0),
-        noise_floor=_number(t.pop("noise_floor", d.noise_floor), w + "noise_floor", lo=1.0),
-        rcond=_number(t.pop("rcond", d.rcond), w + "rcond", positive=True, hi=1.0),
+        warmup=warmup,
+        center=None if center is None else _triple(center, w + "center"),
         fix_scale=_boolean(t.pop("fix_scale", d.fix_scale), w + "fix_scale"),
         backend=_string(t.pop("backend", d.backend), w + "backend"),
-        oversample=_integer(t.pop("oversample", d.oversample), w + "oversample", minimum=1),
         init=_choice(t.pop("init", d.init), w + "init", ("auto", "axis", "none")),
         noise=_choice(t.pop("noise", d.noise), w + "noise", ("image", "counts")),
+        **kw,
     )
     t.finish(_CALIBRATION_KEYS)
     return out

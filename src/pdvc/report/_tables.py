@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 
 from ..errors import InputTypeError, ShapeError
-from ..io._atomic import atomic_path
+from ..io import atomic_path
 
 __all__ = [
     "MOTION_COLUMNS",

@@ -1,0 +1,334 @@
+"""The calibration driver: run a list of stages, each a series of reconstruct -> correlate -> gauge rounds.
+
+:func:`run_stages` is the one loop of pdvc's self-calibration. A round
+reconstructs the correlation volume with the current poses, measures the
+poses against it with P-DVC (:func:`pdvc.correlate`), fixes the gauge
+(:meth:`pdvc.geometry.Poses.gauge_fixed`) and measures the increment: the
+RMS detector displacement of sample points between the geometries before
+and after, in full-resolution pixels. Each stage ends with a
+:class:`pdvc.Status` of its own (``docs/method.md`` explains the rules);
+the driver's status is the last stage's.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..correlation import (
+    CorrelationResult,
+    coarse_grain,
+    coarse_noise_factor,
+    coarse_weights,
+    correlate,
+    shannon_entropy,
+    view_angles,
+)
+from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
+from ..recon import cgls, fbp, fdk, nonneg_ls
+from ..status import Status
+from ._stages import Stage, StageError
+
+__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct"]
+
+log = logging.getLogger("pdvc.calibration")
+
+
+@dataclass(frozen=True)
+class StageOutcome:
+    """How one stage ended: its name, scale, status, message and number of rounds."""
+
+    name: str
+    scale: int
+    status: Status
+    message: str
+    rounds: int
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class DriverResult:
+    """Outcome of :func:`run_stages`.
+
+    Attributes
+    ----------
+    poses : Poses
+        The poses kept (relative to the geometry given, gauge fixed).
+    status : Status
+        The last stage's status; ``message`` says why.
+    history : tuple of dict
+        One dict per round: ``iteration`` (over the whole run), ``stage`` (name), ``stage_index``, ``scale``,
+        ``round`` (in the stage), ``chi_before`` (χ of the fresh
+        reconstruction at the round's starting poses), ``chi_after``,
+        ``snr_before``, ``snr`` (dB), ``entropy`` (NaN unless the entropy
+        guard runs), ``increment_px``, ``increment_max_px`` (full-resolution
+        pixels), ``n_iter`` (Jacobian passes), ``engine_status``,
+        ``elapsed_s``.
+    stages : tuple of StageOutcome
+    correlation : CorrelationResult or None
+        The measurement whose poses were kept (None if no round was kept).
+    guard_volume : tuple (Poses, scale, volume) or None
+        The last analytic volume the entropy guard made, for reuse.
+    """
+
+    poses: Poses
+    status: Status
+    message: str
+    history: tuple
+    stages: tuple
+    correlation: Optional[CorrelationResult]
+    guard_volume: Optional[tuple] = None
+
+    @property
+    def success(self) -> bool:
+        return self.status.success
+
+
+def refined_grid(vol_geom: VolumeGeometry, oversample: int) -> VolumeGeometry:
+    """The same region as ``vol_geom`` with ``oversample`` x finer voxels."""
+    ov = int(oversample)
+    return VolumeGeometry(
+        tuple(n * ov for n in vol_geom.shape),
+        voxel_size=tuple(s / ov for s in vol_geom.voxel_size),
+        offset=vol_geom.offset,
+    )
+
+
+def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) -> np.ndarray:
+    """FDK (cone beam) or FBP (parallel beam): the analytic reconstruction of the calibration."""
+    return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom, **kw)
+
+
+def _correlation_reconstruction(stage: Stage):
+    """(correlation-volume reconstruction, the stage's final-grid reconstruction)."""
+    r = stage.reconstruct
+    if callable(r):
+        return r, r
+    if r == "fdk":
+        return reconstruct, reconstruct
+    if r == "nonneg_ls":
+        return (lambda p, vg, g: nonneg_ls(p, vg, g, coarsen=stage.oversample)), reconstruct
+    return (lambda p, vg, g: cgls(p, vg, g)), reconstruct
+
+
+class _Context:
+    """What every round needs: the data at each scale, the noise, the points, the callbacks."""
+
+    def __init__(self, projections, geom, vol_geom, *, weights, gamma2, fix_scale, angles, times, backend, center):
+        self.p = projections
+        self.geom = geom
+        self.vol_geom = vol_geom
+        self.weights = weights
+        self.gamma2 = gamma2
+        self.fix_scale = fix_scale
+        self.angles = view_angles(geom) if angles is None else np.asarray(angles, float)
+        self.times = times
+        self.backend = backend
+        self.center = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float)
+        self.points = sample_points(vol_geom, 3, fraction=0.8)
+        self._scaled: dict = {}
+
+    def at_scale(self, s: int):
+        """(projections, geometry, grid, weights, γ²) at scale ``s``, made once."""
+        if s not in self._scaled:
+            if s == 1:
+                p, g, vg = self.p, self.geom, self.vol_geom
+            else:
+                p, g = coarse_grain(self.p, self.geom, s)
+                vg = self.vol_geom.binned(s)
+            w = coarse_weights(self.weights, s, g.det_shape)
+            self._scaled = {k: v for k, v in self._scaled.items() if k < s}  # finer scales never go back up
+            self._scaled[s] = (p, g, vg, w, self.gamma2 * coarse_noise_factor(s))
+        return self._scaled[s]
+
+    def gauge(self, poses: Poses) -> Poses:
+        return poses.gauge_fixed(self.geom, center=self.vol_geom.offset, scale=self.fix_scale)
+
+    def increment(self, a: Poses, b: Poses) -> tuple[float, float]:
+        d = np.linalg.norm(self.geom.apply(a).project_points(self.points) - self.geom.apply(b).project_points(self.points), axis=-1)
+        return float(np.sqrt(np.mean(d**2))), float(d.max())
+
+
+def run_stages(
+    projections,
+    geom: VectorGeometry,
+    vol_geom: VolumeGeometry,
+    stages,
+    *,
+    poses: Optional[Poses] = None,
+    noise_variance: float,
+    weights=None,
+    fix_scale: bool = True,
+    angles=None,
+    times=None,
+    center=None,
+    backend: str = "auto",
+    start: tuple = (0, 0),
+    history=(),
+    checkpoint: Optional[Callable[[dict], object]] = None,
+    progress: Optional[Callable[[dict], object]] = None,
+) -> DriverResult:
+    """Run ``stages`` in order from ``poses``; return the poses kept and why it stopped.
+
+    Parameters
+    ----------
+    projections : (n_views, n_rows, n_cols) float32
+        Line integrals at full resolution (not modified).
+    geom, vol_geom
+        The geometry given and the user's grid (full resolution).
+    stages : sequence of Stage
+    poses : Poses, optional
+        Where to start (relative to ``geom``); default no motion.
+    noise_variance : float
+        γ² of the full-resolution projections (carried to each scale).
+    weights : detector weights at full resolution, optional
+    start : (stage index, rounds done in it)
+        Resume an interrupted run there (``history`` holds its rounds).
+    checkpoint : callable, optional
+        Called after every round with ``dict(poses, history, stage_index,
+        rounds_done)``, before anything is reported.
+    progress : callable, optional
+        Called with a dict at the start of every stage (``event="stage"``)
+        and after every round (``event="round"``).
+    """
+    stages = tuple(stages)
+    if not stages or not all(isinstance(s, Stage) for s in stages):
+        raise StageError("stages must be a non-empty sequence of pdvc.calibration.Stage")
+    ctx = _Context(
+        projections, geom, vol_geom, weights=weights, gamma2=float(noise_variance), fix_scale=fix_scale,
+        angles=angles, times=times, backend=backend, center=center,
+    )
+    poses = Poses.identity(geom.n_views) if poses is None else poses
+    history = list(history)
+    outcomes: list = []
+    kept = None
+    guard_volume = None
+    i0, r0 = int(start[0]), int(start[1])
+    for i in range(i0, len(stages)):
+        stage = stages[i]
+        t0 = time.perf_counter()
+        _, g_s, vg_s, _, _ = ctx.at_scale(stage.scale)
+        if progress is not None:
+            progress(dict(event="stage", index=i, n_stages=len(stages), name=stage.name, scale=stage.scale,
+                          det_shape=g_s.det_shape, volume=vg_s.shape))
+        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress)
+        poses, status, res, gv = run.run(r0 if i == i0 else 0)
+        kept = res if res is not None else kept
+        guard_volume = gv if gv is not None else guard_volume
+        outcomes.append(StageOutcome(stage.name, stage.scale, status, status.message, run.n_rounds, time.perf_counter() - t0))
+        if checkpoint is not None:
+            checkpoint(dict(poses=poses, history=[dict(h) for h in history], stage_index=i + 1, rounds_done=0))
+        log.info("stage %d (%s, scale %d): %s after %d round(s)", i, stage.name, stage.scale, status.message, run.n_rounds)
+    last = outcomes[-1] if outcomes else StageOutcome(stages[-1].name, stages[-1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0)
+    return DriverResult(
+        poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
+        correlation=kept, guard_volume=guard_volume,
+    )
+
+
+class _StageRun:
+    """The rounds of one stage and its stopping rules (``docs/method.md``, "Stopping")."""
+
+    def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress):
+        self.ctx, self.stage, self.index = ctx, stage, index
+        self.poses = poses
+        self.history = history
+        self.checkpoint, self.progress = checkpoint, progress
+        self.rec, self.rec_final = _correlation_reconstruction(stage)
+        self.n_rounds = 0
+        self.best = None  # (chi_before, poses, result) for the consistency guard
+        self.ent_best = None
+        self.ent_range = None
+        self.guard_volumes: list = []  # the entropy guard's last two volumes: a rollback keeps the one before
+        self.kept = None  # the correlation whose poses are self.poses
+
+    def run(self, first_round: int):
+        st = self.stage
+        status = Status.ROUNDS_DONE if st.until == "rounds" else Status.MAX_ITER
+        prev_poses, prev_inc, prev_kept = self.poses, None, None
+        for r in range(first_round, st.rounds):
+            self.t_round = time.perf_counter()
+            entropy = float("nan")
+            if "entropy" in st.guards:
+                entropy, rose = self._entropy_check()
+                if rose:
+                    status = Status.ENTROPY_GUARD
+                    self.poses, self.kept = prev_poses, prev_kept
+                    break
+            res = self._correlate()
+            chi_before = float(res.chi_history[0])
+            if "consistency" in st.guards:
+                if self.best is None or chi_before < self.best[0]:
+                    self.best = (chi_before, self.poses, self.kept, r)
+                elif chi_before > self.best[0] * (1 + st.diverge_tol):
+                    log.info("round %d: chi_before %.5g rose above the best %.5g; keeping the best poses", r, chi_before, self.best[0])
+                    # past its best point (a success) or never better than where it started (diverged)
+                    status = Status.CONSISTENCY_GUARD if self.best[3] > first_round else Status.DIVERGED
+                    self.poses, self.kept = self.best[1], self.best[2]
+                    break
+            if res.status == Status.NO_DESCENT and len(res.chi_history) == 1:
+                status = Status.FIXED_POINT  # nothing lowered chi: the poses stay as they are
+                break
+            new = self.ctx.gauge(res.poses)
+            inc, inc_max = self.ctx.increment(self.poses, new)
+            prev_poses, prev_kept = self.poses, self.kept
+            self.poses, self.kept = new, res
+            self._record(r, res, chi_before, entropy, inc, inc_max)
+            if inc < st.tol_px:
+                status = Status.CONVERGED if st.until == "converged" else Status.ROUNDS_DONE
+                break
+            if st.until == "converged" and st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc:
+                log.info("round %d: increment %.3g px did not contract (previous %.3g px); stopping", r, inc, prev_inc)
+                status = Status.STOPPED_CONTRACTING
+                self.poses, self.kept = prev_poses, prev_kept
+                break
+            prev_inc = inc
+        gv = next((v for v in self.guard_volumes if v[0] is self.poses), None)
+        return self.poses, status, self.kept, gv
+
+    def _entropy_check(self) -> tuple[float, bool]:
+        """Entropy of the stage's analytic volume at the current poses; True if it rose past the tolerance."""
+        p, g, vg, _, _ = self.ctx.at_scale(self.stage.scale)
+        ref = self.rec_final(p, vg, g.apply(self.poses))
+        self.guard_volumes = (self.guard_volumes + [(self.poses, self.stage.scale, ref)])[-2:]
+        if self.ent_range is None:
+            self.ent_range = tuple(float(q) for q in np.percentile(ref, [0.1, 99.9]))
+        entropy = float(shannon_entropy(ref, value_range=self.ent_range))
+        if self.ent_best is not None and entropy > self.ent_best * (1 + self.stage.entropy_tol):
+            log.info("entropy %.5g rose above the lowest %.5g; stopping", entropy, self.ent_best)
+            return entropy, True
+        self.ent_best = entropy if self.ent_best is None else min(self.ent_best, entropy)
+        return entropy, False
+
+    def _correlate(self) -> CorrelationResult:
+        st, ctx = self.stage, self.ctx
+        p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
+        vg_c = refined_grid(vg, st.oversample)
+        vol = self.rec(p, vg_c, g.apply(self.poses))
+        return correlate(
+            vol, vg_c, p, g, basis=st.basis, frame=st.frame, fixed=st.fixed, method=st.method, center=ctx.center,
+            weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
+            initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
+            max_iter=st.max_iter, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
+            noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend,
+        )
+
+    def _record(self, r, res, chi_before, entropy, inc, inc_max):
+        st = self.stage
+        entry = dict(
+            iteration=len(self.history), stage=st.name, stage_index=self.index, scale=st.scale, round=r, chi_before=chi_before,
+            chi_after=float(res.chi), snr_before=float(res.snr_history[0]), snr=float(res.snr_history[-1]),
+            entropy=entropy, increment_px=inc, increment_max_px=inc_max, n_iter=int(res.n_iter),
+            engine_status=Status(res.status).name.lower(), elapsed_s=time.perf_counter() - self.t_round,
+        )
+        self.history.append(entry)
+        self.n_rounds += 1
+        log.info("stage %s round %d: chi %.5g -> %.5g, increment %.3g px", st.name, r, chi_before, entry["chi_after"], inc)
+        if self.checkpoint is not None:  # saved before anything is reported: a Ctrl-C in a callback loses no round
+            self.checkpoint(dict(poses=self.poses, history=[dict(h) for h in self.history], stage_index=self.index, rounds_done=r + 1))
+        if self.progress is not None:
+            self.progress(dict(entry, event="round"))

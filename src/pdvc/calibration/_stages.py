@@ -1,0 +1,313 @@
+"""Stages as data, and the named recipes that are lists of them.
+
+A :class:`Stage` says everything one part of a calibration does: the motion
+model it measures (temporal basis, frame, fixed parameters, full
+identification or PGD), the reconstruction of the correlation volume, the
+scale of the data and the refinement of the correlation grid, the stopping
+rule and its guards, and the number of rounds. :func:`pdvc.calibration.run_stages`
+runs a list of them; a *recipe* is a named list (:func:`recipe_stages`). The
+reasons behind every default are in ``docs/method.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+
+from ..correlation import BASIS_NAMES, TemporalBasis, is_basis_name
+from ..errors import PdvcError
+from ..projectors import POSE_PARAMETERS
+
+__all__ = [
+    "Stage",
+    "StageError",
+    "RECIPES",
+    "RECONSTRUCTIONS",
+    "GUARDS",
+    "recipe_stages",
+    "auto_scales",
+    "stages_to_dicts",
+    "stages_from_dicts",
+]
+
+#: Reconstructions of the correlation volume a stage can name.
+RECONSTRUCTIONS = ("fdk", "nonneg_ls", "cgls")
+#: Guards a stage can run before or after each round.
+GUARDS = ("consistency", "entropy")
+#: The named recipes (:func:`recipe_stages`).
+RECIPES = ("default", "precession", "jolts", "axis")
+
+_ROTATIONS = ("rx", "ry", "rz")
+
+
+class StageError(PdvcError, ValueError):
+    """A stage or recipe that cannot run: a bad field, an unknown recipe."""
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of a calibration: a motion model measured over rounds of reconstruct + correlate.
+
+    Attributes
+    ----------
+    name : str
+        A label for logs, history and report (e.g. ``"warmup"``, ``"model"``).
+    basis : str or TemporalBasis or array
+        Temporal basis (:func:`pdvc.correlation.make_basis` names, ``"drift"``
+        = {1, t, t², cos θ, sin θ}). Only names can be written to a config.
+    frame : {"sample", "lab"}
+    fixed : tuple of str
+        Parameters of ``frame`` held at zero, among ``tx ty tz rx ry rz``.
+    method : {"full", "pgd"}
+    reconstruct : {"fdk", "nonneg_ls", "cgls"} or callable
+        The correlation volume: FDK (FBP in parallel beam); non-negative
+        least squares on cubic B-splines (:func:`pdvc.recon.nonneg_ls`,
+        consistent on non-planar orbits); CGLS. A callable
+        ``f(projections, vol_geom, geom) -> volume`` also makes the final
+        volume of the stage.
+    scale : int
+        The data are coarse-grained ``scale`` x ``scale`` for this stage.
+    oversample : int
+        Correlation voxels are ``oversample`` x finer than the stage's grid.
+    rounds : int
+        Rounds (reconstruct, correlate, fix the gauge) at most.
+    tol_px : float
+        A round that moves the sample points by less than this (RMS,
+        full-resolution detector pixels) ends the stage.
+    until : {"converged", "rounds"}
+        ``"converged"``: the stage must converge; running out of rounds is
+        not a success, and a round whose increment does not contract
+        (``stall_ratio``) ends it with the poses before that round.
+        ``"rounds"``: the stage runs its rounds (a warm-up), ending early on
+        ``tol_px``.
+    stall_ratio : float or None
+        ``until="converged"``: stop when an increment is at least this times
+        the previous one. None: no such rule.
+    guards : tuple of str
+        ``"consistency"``: stop when the data consistency of a fresh
+        reconstruction rises by more than ``diverge_tol`` over the best of the
+        stage, keeping the best poses (``CONSISTENCY_GUARD``, a success; or
+        ``DIVERGED`` when no round beat the stage's starting poses). ``"entropy"``: before each
+        round, stop when the entropy of the stage's final-grid volume rises by
+        more than ``entropy_tol`` over the lowest, keeping the poses before
+        the last round.
+    max_iter, max_modes, pgd_passes, min_gain, noise_floor, rcond
+        The engine's options (:func:`pdvc.correlate`).
+    """
+
+    name: str = "model"
+    basis: Any = "fourier:1"
+    frame: str = "sample"
+    fixed: tuple = ("rz",)
+    method: str = "full"
+    reconstruct: Any = "fdk"
+    scale: int = 1
+    oversample: int = 2
+    rounds: int = 9
+    tol_px: float = 0.01
+    until: str = "converged"
+    stall_ratio: Optional[float] = 1.0
+    guards: tuple = ("consistency",)
+    diverge_tol: float = 0.005
+    entropy_tol: float = 0.003
+    max_iter: int = 30
+    max_modes: int = 5
+    pgd_passes: int = 5
+    min_gain: float = 0.01
+    noise_floor: float = 1.05
+    rcond: float = 1e-6
+
+    def __post_init__(self):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        if not isinstance(self.name, str) or not self.name:
+            raise StageError(f"stage name must be a non-empty string, got {self.name!r}")
+        w = f"stage {self.name!r}: "
+        if isinstance(self.basis, str):
+            if not is_basis_name(self.basis):
+                raise StageError(f"{w}basis must be one of {BASIS_NAMES}, a TemporalBasis or an array, got {self.basis!r}")
+            set_("basis", self.basis.strip().lower())
+        elif not isinstance(self.basis, (TemporalBasis, np.ndarray)):
+            raise StageError(f"{w}basis must be one of {BASIS_NAMES}, a TemporalBasis or an array, got {self.basis!r}")
+        for key, allowed in (("frame", ("sample", "lab")), ("method", ("full", "pgd")), ("until", ("converged", "rounds"))):
+            if getattr(self, key) not in allowed:
+                raise StageError(f"{w}{key} must be one of {allowed}, got {getattr(self, key)!r}")
+        fixed = (self.fixed,) if isinstance(self.fixed, str) else tuple(self.fixed)
+        bad = [f for f in fixed if f not in POSE_PARAMETERS]
+        if bad or len(set(fixed)) != len(fixed) or len(fixed) == 6:
+            raise StageError(f"{w}fixed must name distinct parameters among {POSE_PARAMETERS}, leaving one free, got {list(fixed)}")
+        set_("fixed", fixed)
+        if not (callable(self.reconstruct) or self.reconstruct in RECONSTRUCTIONS):
+            raise StageError(f"{w}reconstruct must be one of {RECONSTRUCTIONS} or a callable, got {self.reconstruct!r}")
+        guards = (self.guards,) if isinstance(self.guards, str) else tuple(self.guards)
+        if any(g not in GUARDS for g in guards) or len(set(guards)) != len(guards):
+            raise StageError(f"{w}guards must be distinct names among {GUARDS}, got {list(guards)}")
+        set_("guards", guards)
+        for key, lo in (("scale", 1), ("oversample", 1), ("rounds", 1), ("max_iter", 1), ("max_modes", 1), ("pgd_passes", 1)):
+            val = getattr(self, key)
+            if not isinstance(val, (int, np.integer)) or isinstance(val, bool) or val < lo:
+                raise StageError(f"{w}{key} must be an int >= {lo}, got {val!r}")
+            set_(key, int(val))
+        for key in ("tol_px", "diverge_tol", "entropy_tol", "rcond"):
+            val = getattr(self, key)
+            if not isinstance(val, (int, float, np.floating)) or isinstance(val, bool) or not (val > 0):
+                raise StageError(f"{w}{key} must be a positive number, got {val!r}")
+            set_(key, float(val))
+        for key in ("min_gain", "noise_floor"):
+            val = getattr(self, key)
+            if not isinstance(val, (int, float, np.floating)) or isinstance(val, bool) or not (val >= 0):
+                raise StageError(f"{w}{key} must be a non-negative number, got {val!r}")
+        if self.stall_ratio is not None and not (isinstance(self.stall_ratio, (int, float)) and self.stall_ratio > 0):
+            raise StageError(f"{w}stall_ratio must be a positive number or None, got {self.stall_ratio!r}")
+
+    @property
+    def frees_rotation(self) -> bool:
+        return not set(_ROTATIONS) <= set(self.fixed)
+
+    def replace(self, **changes) -> "Stage":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """The stage as a ``[[calibration.stage]]`` table (TOML types; ``stall_ratio = 0`` means none)."""
+        if not isinstance(self.basis, str) or callable(self.reconstruct):
+            raise StageError(f"stage {self.name!r} holds a custom basis or reconstruction: it cannot be written to a config")
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["fixed"] = list(self.fixed)
+        d["guards"] = list(self.guards)
+        d["stall_ratio"] = 0.0 if self.stall_ratio is None else float(self.stall_ratio)
+        return d
+
+    @classmethod
+    def from_dict(cls, table: dict, where: str = "stage") -> "Stage":
+        """A stage from a ``[[calibration.stage]]`` table; unknown keys are an error."""
+        if not isinstance(table, dict):
+            raise StageError(f"{where} must be a table, got {type(table).__name__}")
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(table) - names)
+        if unknown:
+            raise StageError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(names)}")
+        d = dict(table)
+        if "reconstruct" in d and not isinstance(d["reconstruct"], str):
+            raise StageError(f"{where}.reconstruct must be one of {RECONSTRUCTIONS}, got {d['reconstruct']!r}")
+        if "basis" in d and not isinstance(d["basis"], str):
+            raise StageError(f"{where}.basis must be one of {BASIS_NAMES}, got {d['basis']!r}")
+        if d.get("stall_ratio") == 0:
+            d["stall_ratio"] = None
+        try:
+            return cls(**d)
+        except StageError as exc:
+            raise StageError(f"{where}: {exc}") from None
+        except TypeError as exc:  # pragma: no cover - all fields have defaults
+            raise StageError(f"{where}: {exc}") from None
+
+
+def stages_to_dicts(stages) -> list:
+    return [s.to_dict() for s in stages]
+
+
+def stages_from_dicts(tables, where: str = "calibration.stage") -> tuple:
+    if not isinstance(tables, (list, tuple)) or not tables:
+        raise StageError(f"{where} must be a non-empty list of tables")
+    return tuple(Stage.from_dict(t, f"{where}[{i}]") for i, t in enumerate(tables))
+
+
+def auto_scales(det_shape) -> tuple:
+    """Default coarse-to-fine scales of the data: coarse enough for ~64+ px, down to 1.
+
+    Large detectors (512 columns or more) run 4 -> 2 (the paper's schedule:
+    at scale 2 a 2k detector still has ~1000 columns), small ones (under
+    512) 2 -> 1, tiny ones (under 128) 1 only. Whatever the scales, the
+    final volume is reconstructed at full resolution on the user's grid.
+    """
+    n = min(det_shape[1], max(det_shape[0], 1) * 4)  # thin detectors (a few rows) count by columns
+    if n >= 512:
+        return (4, 2)
+    if n >= 128:
+        return (2, 1)
+    return (1,)
+
+
+# the model stage of each recipe, before the user's overrides
+_RECIPE_MODEL = {
+    "default": dict(basis="fourier:1", frame="sample", fixed=("rz",)),
+    "precession": dict(basis="drift", frame="lab", fixed=("rz",), reconstruct="nonneg_ls", guards=("consistency", "entropy")),
+    "jolts": dict(basis="dirac", frame="lab", fixed=("rx", "ry", "rz", "ty")),
+    "axis": dict(basis="constant", frame="lab", fixed=("rz", "ty")),
+}
+_RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
+
+
+def recipe_stages(recipe: str = "default", det_shape=None, *, scales="auto", max_outer: Optional[int] = None, warmup: int = 1, **model) -> tuple:
+    """The stage list of a named recipe.
+
+    Parameters
+    ----------
+    recipe : {"default", "precession", "jolts", "axis"}
+        ``default``: a tilted, offset axis and smooth drift (sample-frame
+        ``fourier:1``, FDK). ``precession``: a precessing axis (lab-frame
+        ``drift`` basis, non-negative least-squares volume, entropy guard).
+        ``jolts``: sudden jumps (free per-view lab translations).
+        ``axis``: only a fixed (offset, tilted) axis (constant lab model).
+    det_shape : (rows, cols)
+        Needed for ``scales="auto"`` (:func:`auto_scales`).
+    scales : "auto" or sequence of int
+        One warm-up + model pair per scale, coarse to fine.
+    max_outer : int, optional
+        Rounds per scale, warm-up included (recipe default: 10, 8 for
+        ``precession`` and ``jolts``).
+    warmup : int
+        Translation-only rounds (lab frame, ``drift`` basis) before the
+        model at each scale, when the model frees a rotation (0: none).
+    **model
+        Overrides of the model stage's fields (``basis``, ``frame``,
+        ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
+        ``guards``, ``max_iter``, ...).
+    """
+    if recipe not in RECIPES:
+        raise StageError(f"recipe must be one of {RECIPES}, got {recipe!r}")
+    if scales == "auto":
+        if det_shape is None:
+            raise StageError("scales='auto' needs the detector shape")
+        sched = auto_scales(det_shape)
+    else:
+        try:
+            sched = tuple(int(s) for s in scales)
+        except (TypeError, ValueError):
+            raise StageError(f"scales must be 'auto' or positive ints, coarse to fine, got {scales!r}") from None
+        if not sched or any(s < 1 for s in sched) or any(b >= a for a, b in zip(sched, sched[1:])):
+            raise StageError(f"scales must be 'auto' or positive ints, strictly decreasing (coarse to fine), got {scales!r}")
+    n_outer = _RECIPE_ROUNDS[recipe] if max_outer is None else max_outer
+    if not isinstance(n_outer, (int, np.integer)) or isinstance(n_outer, bool) or n_outer < 1:
+        raise StageError(f"max_outer must be a positive int, got {max_outer!r}")
+    if not isinstance(warmup, (int, np.integer)) or isinstance(warmup, bool) or warmup < 0:
+        raise StageError(f"warmup must be an int >= 0, got {warmup!r}")
+    fields = {f.name for f in dataclasses.fields(Stage)} - {"name", "scale", "rounds"}
+    unknown = sorted(set(model) - fields)
+    if unknown:
+        raise StageError(f"unknown model option(s) {unknown}; a stage takes {sorted(fields)}")
+    spec = dict(_RECIPE_MODEL[recipe])
+    spec.update({k: v for k, v in model.items() if v is not None})
+    base = Stage(name="model", rounds=1, **spec)
+    stages = []
+    for s in sched:
+        n_warm = min(warmup, n_outer - 1) if base.frees_rotation else 0
+        if n_warm:
+            stages.append(warmup_stage(base, scale=s, rounds=n_warm))
+        stages.append(base.replace(scale=s, rounds=n_outer - n_warm))
+    return tuple(stages)
+
+
+def warmup_stage(model: Stage, *, scale: int, rounds: int = 1) -> Stage:
+    """Translations first: the lab-frame ``drift`` model that precedes a model with free rotations.
+
+    The first reconstructions are blurred by the motion; rotations measured
+    against them are noise (``docs/method.md``). In the lab frame it also
+    holds the translations the model fixes.
+    """
+    fixed = _ROTATIONS + (tuple(x for x in model.fixed if x not in _ROTATIONS) if model.frame == "lab" else ())
+    return model.replace(
+        name="warmup", basis="drift", frame="lab", fixed=fixed, method="full", scale=scale, rounds=rounds,
+        until="rounds", guards=(), stall_ratio=None,
+    )

@@ -1,0 +1,201 @@
+"""Stages as data: validation, recipes, TOML round trips, the config keys, and the pipeline's contract."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import tomli_w
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib
+
+import pdvc
+from pdvc import Status
+from pdvc.calibration import (
+    RECIPES,
+    CalibrationError,
+    Stage,
+    StageError,
+    auto_scales,
+    recipe_stages,
+    stages_from_dicts,
+    stages_to_dicts,
+)
+from pdvc.io import ConfigError, load_config, write_config
+
+
+@pytest.mark.parametrize(
+    "kw, field",
+    [
+        (dict(basis="fourier"), "basis"),
+        (dict(frame="world"), "frame"),
+        (dict(fixed=("tx", "yaw")), "fixed"),
+        (dict(fixed=("tx", "ty", "tz", "rx", "ry", "rz")), "fixed"),
+        (dict(reconstruct="sirt"), "reconstruct"),
+        (dict(guards=("sharpness",)), "guards"),
+        (dict(rounds=0), "rounds"),
+        (dict(scale=1.5), "scale"),
+        (dict(tol_px=0.0), "tol_px"),
+        (dict(until="forever"), "until"),
+        (dict(stall_ratio=-1.0), "stall_ratio"),
+    ],
+)
+def test_a_bad_stage_field_is_named(kw, field):
+    with pytest.raises(StageError, match=field):
+        Stage(**kw)
+
+
+def test_stage_round_trips_through_toml():
+    stages = recipe_stages("precession", (100, 300), scales=(2, 1))
+    text = tomli_w.dumps({"calibration": {"stage": stages_to_dicts(stages)}})
+    again = stages_from_dicts(tomllib.loads(text)["calibration"]["stage"])
+    assert again == stages
+    with pytest.raises(StageError, match=r"stage\[0\].*unknown key.*'rotations'"):
+        stages_from_dicts([{"name": "x", "rotations": 3}])
+
+
+def test_default_recipe_is_a_warmup_then_the_model_at_each_scale():
+    stages = recipe_stages("default", (76, 89))
+    assert auto_scales((76, 89)) == (1,)
+    assert [(s.name, s.scale, s.rounds) for s in stages] == [("warmup", 1, 1), ("model", 1, 9)]
+    warm, model = stages
+    assert warm.basis == "drift" and warm.frame == "lab" and set(warm.fixed) == {"rx", "ry", "rz"}
+    assert warm.until == "rounds" and warm.guards == ()
+    assert model.basis == "fourier:1" and model.frame == "sample" and model.fixed == ("rz",)
+    assert model.until == "converged" and model.guards == ("consistency",)
+    big = recipe_stages("default", (1024, 1024))
+    assert [s.scale for s in big] == [4, 4, 2, 2]
+
+
+def test_recipes_differ_in_their_model_and_take_overrides():
+    assert set(RECIPES) == {"default", "precession", "jolts", "axis"}
+    prec = recipe_stages("precession", (50, 60))[-1]
+    assert (prec.basis, prec.frame, prec.reconstruct, prec.guards) == ("drift", "lab", "nonneg_ls", ("consistency", "entropy"))
+    jolts = recipe_stages("jolts", (50, 60))
+    assert len(jolts) == 1 and jolts[0].basis == "dirac" and jolts[0].rounds == 8  # no free rotation: no warm-up
+    mine = recipe_stages("default", (50, 60), max_outer=5, basis="spline:3", oversample=1)
+    assert [s.rounds for s in mine] == [1, 4] and mine[1].basis == "spline:3" and all(s.oversample == 1 for s in mine)
+    # a lab-frame model's fixed translations are held in its warm-up too
+    lab = recipe_stages("default", (50, 60), frame="lab", fixed=("rz", "ty"))
+    assert set(lab[0].fixed) == {"rx", "ry", "rz", "ty"}
+    with pytest.raises(StageError, match="recipe must be one of"):
+        recipe_stages("wobble", (50, 60))
+    with pytest.raises(StageError, match="unknown model option.*n_outer"):
+        recipe_stages("default", (50, 60), n_outer=3)
+
+
+# -- the configuration ---------------------------------------------------------
+def _raw(**cal):
+    return {"data": {"path": "p.npy"}, "geometry": {"type": "parallel", "pixel": 1.0}, "calibration": cal}
+
+
+def test_config_selects_a_recipe_and_spells_out_stages(tmp_path):
+    cfg = load_config(_raw(recipe="precession", max_outer=6), base_dir=tmp_path)
+    assert cfg.calibration.recipe == "precession" and cfg.calibration.recipe_parameters() == {"max_outer": 6}
+    stages = recipe_stages("jolts", (40, 50))
+    cfg = load_config(_raw(stage=stages_to_dicts(stages)), base_dir=tmp_path)
+    assert stages_from_dicts(list(cfg.calibration.stage)) == stages
+    path = write_config(tmp_path / "c.toml", cfg)
+    assert "[[calibration.stage]]" in path.read_text()
+    assert load_config(path) == cfg
+    with pytest.raises(ConfigError, match=r"calibration\.basis cannot be combined with \[\[calibration\.stage\]\]"):
+        load_config(_raw(basis="dirac", stage=stages_to_dicts(stages)), base_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"calibration\.stage\[0\].*frame"):
+        load_config(_raw(stage=[{"name": "m", "frame": "world"}]), base_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"calibration\.recipe must be one of"):
+        load_config(_raw(recipe="wobble"), base_dir=tmp_path)
+
+
+def test_resolved_config_holds_the_full_stage_list_that_runs(tmp_path):
+    cfg = load_config(_raw(recipe="default", basis="spline:2", max_outer=4), base_dir=tmp_path)
+    stages = recipe_stages("default", (40, 50), **cfg.calibration.recipe_parameters())
+    res = cfg.resolved(stages=stages)
+    assert res.calibration.basis is None and res.calibration.recipe == "default"
+    assert stages_from_dicts(list(res.calibration.stage)) == stages
+    again = load_config(write_config(tmp_path / "r.toml", res))
+    assert again == res
+
+
+# -- the pipeline's contract ----------------------------------------------------
+@pytest.fixture(scope="module")
+def small():
+    from tests.correlation.cases import make_case
+
+    return make_case("offset", n=24, n_views=48)
+
+
+def test_a_result_worse_than_nominal_returns_the_nominal_geometry_and_fails(small, monkeypatch, tmp_path):
+    # A driver that ends 3 px off (a broken calibration, made on purpose here): the pipeline's own
+    # check sees the fit worse than nominal, returns the nominal geometry, and says it is no success;
+    # the CLI path writes every output and run.json says why.
+    from pdvc.calibration import _pipeline
+    from pdvc.geometry import Poses
+
+    c = small
+    real = _pipeline.run_stages
+
+    def broken(*a, **kw):
+        out = real(*a, **kw)
+        n = c.scan.geometry.n_views
+        bad = Poses(np.zeros((n, 3)), np.tile([3.0, 0.0, 1.0], (n, 1)))
+        import dataclasses
+
+        return dataclasses.replace(out, poses=bad)
+
+    monkeypatch.setattr(_pipeline, "run_stages", broken)
+    res = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, out_dir=tmp_path / "o", max_outer=2, fixed=("rx", "ry", "rz"))
+    assert res.status == Status.WORSE_THAN_NOMINAL and not res.success
+    assert res.geometry == c.scan.geometry and res.rejected_geometry is not None
+    assert np.mean(res.snr_after) == pytest.approx(np.mean(res.snr_before))
+    run = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert run["status"] == "complete" and run["success"] is False and run["status_name"] == "worse_than_nominal"
+    assert "worse than the nominal" in run["message"]
+    for name in ("geometry.npy", "motion.csv", "result.h5", "report.html", "volume.tif"):
+        assert (tmp_path / "o" / name).is_file()
+
+
+def test_final_volume_is_on_the_grid_asked_for_whatever_the_scales(small):
+    c = small
+    res = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, scales=(2,), max_outer=1, fixed=("rx", "ry", "rz"))
+    assert res.vol_geom == c.vol_geom and res.volume.shape == c.vol_geom.shape
+    assert res.volume_initial.shape == c.vol_geom.shape
+    assert {h["scale"] for h in res.history} == {2}
+
+
+def test_calibrate_refuses_stages_mixed_with_recipe_parameters(small):
+    c = small
+    with pytest.raises(CalibrationError, match="stages= is given"):
+        pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, stages=[Stage()], basis="dirac")
+
+
+def test_the_report_describes_the_poses_kept_after_a_rollback(small, tmp_path):
+    # The correlation volume gets better once, then worse: the consistency guard rolls back to the
+    # best round's poses. Every output (result, motion.csv, the assessment behind the report's modes
+    # and uncertainties) must describe those poses, not the discarded last round.
+    import h5py
+
+    from pdvc.recon import fdk
+
+    c = small
+    calls = []
+
+    def reconstruct(p, vg, g):
+        calls.append(g)
+        k = len(calls) - 1
+        return fdk(p, vg, g) * (1.0 + (0.3 if k == 0 else 0.5 * (k - 1)))
+
+    stages = [Stage(fixed=("rx", "ry", "rz"), reconstruct=reconstruct, rounds=5, stall_ratio=None, tol_px=1e-9)]
+    res = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, stages=stages, init="none", out_dir=tmp_path / "o")
+    assert res.stage_outcomes[-1].status == Status.CONSISTENCY_GUARD
+    assert len(res.history) >= 2  # rounds ran past the one whose poses are kept
+    assert res.geometry == calls[1]
+    assert res.assessment is not None and res.assessment.poses is res.poses
+    with h5py.File(tmp_path / "o" / "result.h5") as f:
+        np.testing.assert_allclose(f["poses/translations"][()], res.translations)
+        np.testing.assert_allclose(f["assessment/std_sample"][()], res.assessment.std, equal_nan=True)
+    motion = np.genfromtxt(tmp_path / "o" / "motion.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(motion["tx_sample"], res.poses.to_params(c.vol_geom.offset)[:, 0], atol=1e-6)
