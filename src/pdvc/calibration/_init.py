@@ -30,7 +30,7 @@ import numpy as np
 
 from ..correlation import lab_frames
 from ..errors import InputTypeError, PdvcError, ShapeError
-from ..geometry import VectorGeometry
+from ..geometry import Poses, VectorGeometry
 
 __all__ = ["InitError", "AxisOffsetEstimate", "estimate_axis_offset", "offset_poses"]
 
@@ -361,7 +361,7 @@ def estimate_axis_offset(
     )
 
 
-def offset_poses(geom: VectorGeometry, offset_px: float) -> tuple[np.ndarray, np.ndarray]:
+def offset_poses(geom: VectorGeometry, offset_px: float) -> Poses:
     """Per-view sample-frame poses that move the nominal axis by ``offset_px`` columns.
 
     The sample is translated, at every view, along the lab ``x`` (the
@@ -383,8 +383,9 @@ def offset_poses(geom: VectorGeometry, offset_px: float) -> tuple[np.ndarray, np
 
     Returns
     -------
-    rotvecs, translations : (n_views, 3) float64 arrays
-        Zero rotations; translations in length units, sample xyz.
+    Poses
+        Zero rotations; translations in length units, sample xyz (unpacks
+        as ``rotvecs, translations``).
     """
     if not isinstance(geom, VectorGeometry):
         raise InputTypeError(f"geom must be a pdvc.VectorGeometry, got {type(geom).__name__}")
@@ -395,4 +396,4 @@ def offset_poses(geom: VectorGeometry, offset_px: float) -> tuple[np.ndarray, np
     pitch = np.linalg.norm(u, axis=1)
     length = off * pitch / _magnification(geom)
     translations = (length / pitch)[:, None] * u
-    return np.zeros((geom.n_views, 3)), translations
+    return Poses(np.zeros((geom.n_views, 3)), translations)

@@ -321,7 +321,7 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
     finally:
         timings["init"] = time.perf_counter() - t0
     log.info("coarse initialisation: axis offset %.2f px from %d opposite view pairs", est.offset_px, est.n_pairs)
-    return Poses(*offset_poses(geom, float(est.offset_px))), [], (0, 0), float(est.offset_px)
+    return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px)
 
 
 def _too_large(drv, offset_px, stages):

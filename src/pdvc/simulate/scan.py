@@ -26,7 +26,7 @@ import numpy as np
 
 from .._arrays import frozen
 from ..errors import InputTypeError, ShapeError
-from ..geometry import VectorGeometry
+from ..geometry import Poses, VectorGeometry
 from ._checks import SimulationError, as_int, as_positive
 from .analytic import project_analytic
 from .phantoms import EllipsoidPhantom
@@ -95,6 +95,11 @@ class SimulatedScan:
     @property
     def n_views(self) -> int:
         return self.projections.shape[0]
+
+    @property
+    def poses(self) -> Poses:
+        """The true poses (``rotvecs``, ``translations``) as one :class:`pdvc.geometry.Poses`."""
+        return Poses(self.rotvecs, self.translations)
 
     @property
     def flat(self) -> np.ndarray:
