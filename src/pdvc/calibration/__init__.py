@@ -20,6 +20,8 @@ from ._axis import MotionSummary, describe_motion
 from ._driver import DriverResult, StageOutcome, reconstruct, refined_grid, run_stages
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
+from ._diagnose import ResidualDiagnosis, diagnose_residual
+from ._truncation import Truncation, detect_truncation, truncation_weights
 from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages
 from ._stages import (
     GUARDS,
@@ -66,4 +68,9 @@ __all__ = [
     "InitError",
     "estimate_axis_offset",
     "offset_poses",
+    "truncation_weights",
+    "detect_truncation",
+    "Truncation",
+    "diagnose_residual",
+    "ResidualDiagnosis",
 ]

@@ -29,6 +29,7 @@ from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
+from ._diagnose import diagnose_residual
 from ._driver import reconstruct, run_stages
 from ._outer import gauge_text
 from ._stages import Stage, StageError, recipe_stages
@@ -83,6 +84,14 @@ class CalibrationResult:
         Seconds per step (``init``, ``stages``, each stage, ``final``).
     rejected_geometry : VectorGeometry or None
         The calibrated geometry that was rejected for fitting worse than nominal.
+    truncation : Truncation or None
+        Whether the sample reaches past the volume box (read off the
+        nominal reconstruction); when it crosses the top or bottom face the
+        rays leaving there were left out, and SNR is on the rays kept.
+    residual : (ResidualDiagnosis, ResidualDiagnosis)
+        What the residual is made of, with the nominal and the returned
+        geometry (:func:`diagnose_residual`); logged as a warning when its
+        χ is above 2.
     """
 
     geometry: VectorGeometry
@@ -108,6 +117,8 @@ class CalibrationResult:
     options: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     rejected_geometry: Optional[VectorGeometry] = None
+    truncation: object = None
+    residual: tuple = ()
 
     @property
     def success(self) -> bool:
@@ -125,7 +136,10 @@ class CalibrationResult:
 def per_view_snr(projections, volume, vol_geom, geom, *, weights=None) -> np.ndarray:
     """SNR (dB) of each view: ``20 log10(std(s_k) / std(s_k - Π_k f))``."""
     p = np.asarray(projections, np.float32)
-    res = p - forward(volume, vol_geom, geom)
+    return _snr_of(p, p - forward(volume, vol_geom, geom), weights)
+
+
+def _snr_of(p, res, weights) -> np.ndarray:
     if weights is not None:
         w = np.broadcast_to(np.asarray(weights, np.float32), p.shape) > 0
         return np.array([snr_db(p[k][w[k]], res[k][w[k]]) for k in range(p.shape[0])], float)
@@ -189,6 +203,7 @@ def calibrate(
     init: str = "auto",
     fix_scale: bool = True,
     weights=None,
+    truncation: str = "auto",
     noise_variance: Optional[float] = None,
     times=None,
     center=None,
@@ -225,8 +240,14 @@ def calibrate(
     fix_scale : bool
         Cone beam: also fix the magnification gauge (mean source-object
         distance = nominal); see :func:`pdvc.geometry.fix_gauge`.
-    weights : (n_rows, n_cols) array, optional
+    weights : (n_rows, n_cols) or (n_views, n_rows, n_cols) array, optional
         Detector ROI / weights at full resolution.
+    truncation : {"auto", "on", "off"}
+        Samples longer than the volume: drop the rays that leave the volume
+        through its top or bottom face (:func:`truncation_weights`), which
+        no reconstruction on ``vol_geom`` can explain. ``"auto"`` does so
+        when the nominal reconstruction shows material in the end slices
+        (:func:`detect_truncation`).
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -246,11 +267,16 @@ def calibrate(
     p = _validate(projections, geom, vol_geom, weights)
     if init not in ("auto", "axis", "none"):
         raise CalibrationError(f"init must be 'auto', 'axis' or 'none', got {init!r}")
+    if truncation not in ("auto", "on", "off"):
+        raise CalibrationError(f"truncation must be 'auto', 'on' or 'off', got {truncation!r}")
     stage_list = resolve_stages(geom.det_shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings)
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
+    emit(dict(event="reconstruct", what="nominal"))
+    vol_initial = reconstruct(p, vol_geom, geom)
+    weights, trunc = _truncation(truncation, weights, geom, vol_geom, vol_initial)
 
     def state_checkpoint(state):
         if checkpoint is not None:
@@ -266,10 +292,13 @@ def calibrate(
     for i, o in enumerate(drv.stages):
         timings[f"stage {i + start[0]} ({o.name}, scale {o.scale})"] = o.elapsed_s
     status, message = _too_large(drv, offset_px, stage_list)
-    options = dict(recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale))
+    options = dict(
+        recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
+        truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
+    )
     res = _finish(
-        p, geom, vol_geom, drv, stage_list, status, message, gamma2, weights, times, center, backend, fix_scale,
-        emit, timings, dict(initial_offset_px=offset_px, options=options),
+        p, geom, vol_geom, vol_initial, drv, stage_list, status, message, gamma2, weights, times, center, backend,
+        fix_scale, emit, timings, dict(initial_offset_px=offset_px, options=options, truncation=trunc),
     )
     res = _replace(res, elapsed_s=time.perf_counter() - t_start)
     log.info(
@@ -351,17 +380,37 @@ def _too_large(drv, offset_px, stages):
     return status, message
 
 
-def _finish(p, geom, vol_geom, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra):
+def _truncation(mode, weights, geom, vol_geom, vol_initial):
+    """The detector weights with the truncated rays dropped when ``mode`` says so (and what was found)."""
+    from ._truncation import detect_truncation, truncation_weights
+
+    found = detect_truncation(vol_initial, vol_geom)
+    log.info("truncation: %s", found.describe())
+    if mode == "off" or (mode == "auto" and not found.vertical):
+        return weights, found
+    w = truncation_weights(geom, vol_geom)
+    if weights is not None:
+        w = w * np.asarray(weights, np.float32)
+    if not (w > 0).any():
+        raise CalibrationError("truncation: no ray stays inside the volume; enlarge the volume or set truncation = 'off'")
+    log.info("truncation: %.1f%% of the rays leave the volume through its top or bottom face and are dropped", 100 * (1 - w.mean()))
+    return w, found
+
+
+def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra):
     """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment."""
     t0 = time.perf_counter()
-    emit(dict(event="reconstruct", what="nominal"))
-    vol_initial = reconstruct(p, vol_geom, geom)
     poses = drv.poses
     calibrated = geom.apply(poses)
     emit(dict(event="reconstruct", what="calibrated"))
     vol = reconstruct(p, vol_geom, calibrated)
-    snr_before = per_view_snr(p, vol_initial, vol_geom, geom, weights=weights)
-    snr_after = per_view_snr(p, vol, vol_geom, calibrated, weights=weights)
+    res_before = p - forward(vol_initial, vol_geom, geom)
+    res_after = p - forward(vol, vol_geom, calibrated)
+    snr_before, snr_after = _snr_of(p, res_before, weights), _snr_of(p, res_after, weights)
+    diagnoses = tuple(diagnose_residual(r, gamma2, weights) for r in (res_before, res_after))
+    del res_before, res_after
+    for when, d in zip(("nominal", "calibrated"), diagnoses):
+        (log.warning if d.chi > 2.0 else log.info)("%s geometry: %s", when, d.describe())
     rejected = None
     if np.mean(snr_after) < np.mean(snr_before):
         rejected = calibrated
@@ -372,6 +421,7 @@ def _finish(p, geom, vol_geom, drv, stages, status, message, gamma2, weights, ti
         log.warning(message)
         status = Status.WORSE_THAN_NOMINAL
         poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
+        diagnoses = (diagnoses[0], diagnoses[0])
     lo, hi = np.percentile(vol, [0.1, 99.9])
     e_before = shannon_entropy(vol_initial, value_range=(float(lo), float(hi)))
     e_after = shannon_entropy(vol, value_range=(float(lo), float(hi)))
@@ -392,7 +442,7 @@ def _finish(p, geom, vol_geom, drv, stages, status, message, gamma2, weights, ti
         stage_outcomes=drv.stages, volume=np.asarray(vol, np.float32), volume_initial=np.asarray(vol_initial, np.float32),
         vol_geom=vol_geom, snr_before=snr_before, snr_after=snr_after, entropy_before=float(e_before),
         entropy_after=float(e_after), motion=motion, gauge=gauge_text(geom.kind, fix_scale), status=status,
-        message=str(message), elapsed_s=0.0, timings=timings, rejected_geometry=rejected, **extra,
+        message=str(message), elapsed_s=0.0, timings=timings, rejected_geometry=rejected, residual=diagnoses, **extra,
     )
 
 

@@ -90,6 +90,10 @@ def build_report(out, result, *, projections, angles, params_lab):
     }
     if result.initial_offset_px is not None:
         summary["coarse axis offset (px)"] = result.initial_offset_px
+    for when, d in zip(("nominal", "returned"), getattr(result, "residual", ())):
+        summary[f"residual, {when} geometry"] = d.describe()
+    if getattr(result, "truncation", None) is not None:
+        summary["sample and volume"] = result.truncation.describe()
     if asm is not None:
         summary["modes and uncertainties"] = (
             f"measured at the geometry returned, {asm.frame} frame, basis {', '.join(asm.basis_names)} "

@@ -1,0 +1,42 @@
+"""The residual diagnosis names what was injected, in the right proportions."""
+
+import numpy as np
+import pytest
+
+from pdvc.calibration import diagnose_residual
+
+
+def test_pure_noise_is_noise():
+    r = np.random.default_rng(0).normal(0, 0.5, (30, 20, 40))
+    d = diagnose_residual(r, 0.25)
+    assert d.chi == pytest.approx(1.0, abs=0.02)
+    assert d.noise > 0.97 and d.structure < 0.03
+
+
+def test_injected_parts_are_found_in_proportion():
+    rng = np.random.default_rng(1)
+    n = (40, 16, 50)
+    noise = rng.normal(0, 1.0, n)
+    offset = np.repeat(rng.normal(0, 2.0, n[0]), n[1] * n[2]).reshape(n)  # per view
+    cols = np.broadcast_to(np.sin(np.arange(n[2]) / 3.0) * 1.5, n)  # a fixed column pattern
+    spikes = np.zeros(n)
+    m = rng.random(n) < 0.002
+    spikes[m] = 40.0
+    r = noise + offset + cols + spikes
+    d = diagnose_residual(r, 1.0)
+    total = np.sum(r**2)
+    assert d.view_offset == pytest.approx(np.sum(offset**2) / total, rel=0.1)
+    assert d.column_pattern == pytest.approx(np.sum(cols**2) / total, rel=0.1)
+    assert d.outliers == pytest.approx(np.sum(spikes**2) / total, rel=0.15)
+    assert d.noise == pytest.approx(np.prod(n) / total, rel=0.1)
+    text = d.describe()
+    assert "constant per view" in text and "outlier" in text and "columns" in text
+    assert sum((d.view_offset, d.column_pattern, d.row_pattern, d.outliers, d.noise, d.structure)) == pytest.approx(1.0)
+
+
+def test_zero_weight_pixels_are_left_out():
+    r = np.random.default_rng(2).normal(0, 1.0, (10, 8, 12))
+    w = np.ones((8, 12))
+    w[:, 5] = 0
+    r[:, :, 5] = 1e3  # a dead column, masked
+    assert diagnose_residual(r, 1.0, w).chi == pytest.approx(1.0, abs=0.05)
