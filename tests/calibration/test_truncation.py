@@ -74,3 +74,12 @@ def test_a_rod_longer_than_the_volume_is_handled_by_default():
     e = {m: reprojection_error(r.geometry, truth, pts).rms for m, r in runs.items()}
     assert e["auto"] < 0.6 * e["off"], e
     assert runs["auto"].history[-1]["chi_before"] < 2.0 < runs["off"].history[-1]["chi_before"]
+
+
+def test_noise_in_air_is_not_material():
+    vg = pdvc.VolumeGeometry((24, 32, 32))
+    z, y, x = np.meshgrid(*(np.linspace(-1, 1, s) for s in vg.shape), indexing="ij")
+    blob = ((np.hypot(x, y) < 0.6) & (np.abs(z) < 0.7)).astype(np.float32)
+    noisy = blob + np.random.default_rng(0).normal(0, 0.5, blob.shape).astype(np.float32)
+    d = detect_truncation(noisy, vg)
+    assert not d.vertical and not d.lateral, d

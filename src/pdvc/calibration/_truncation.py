@@ -92,7 +92,7 @@ class Truncation:
     lateral : bool
         Material at the edge of the slices (a region-of-interest scan).
     top_bottom_ratio, edge_ratio : float
-        Mean |value| of those regions over that of the central region.
+        Mean value of those regions over that of the central region.
     """
 
     vertical: bool
@@ -118,13 +118,14 @@ class Truncation:
 def detect_truncation(volume, vol_geom: VolumeGeometry, *, threshold: float = 0.2) -> Truncation:
     """Read off a reconstruction whether the sample reaches past the box's faces or sides.
 
-    The mean absolute value of the two end slices (top and bottom 5 %, at
-    least one slice each) and of the outer ring of the slices (beyond 90 %
-    of the inscribed radius) are compared with that of the central region
-    (middle third in z, inside half the radius): above ``threshold`` the
-    sample is taken to reach there.
+    The mean value of the two end slices (top and bottom 5 %, at least one
+    slice each) and of the outer ring of the slices (beyond 90 % of the
+    inscribed radius) are compared with that of the central region (middle
+    third in z, inside half the radius): above ``threshold`` the sample is
+    taken to reach there. Means, not mean absolute values: the noise of a
+    reconstruction averages out in air, material does not.
     """
-    v = np.abs(np.asarray(volume, np.float32))
+    v = np.asarray(volume, np.float32)
     nz, ny, nx = v.shape
     y, x = np.meshgrid(np.linspace(-1, 1, ny), np.linspace(-1, 1, nx), indexing="ij")
     r = np.hypot(x, y)
