@@ -33,13 +33,15 @@ from .motion import (
     precession_poses,
     tilted_axis_poses,
 )
-from .phantoms import EllipsoidPhantom, cast_iron_phantom, shepp_logan_3d, voxelize
+from .phantoms import EllipsoidPhantom, cast_iron_phantom, foam_phantom, granular_phantom, shepp_logan_3d, voxelize
 from .scan import SimulatedScan, add_poisson_noise, simulate_scan
 
 __all__ = [
     "EllipsoidPhantom",
     "shepp_logan_3d",
     "cast_iron_phantom",
+    "foam_phantom",
+    "granular_phantom",
     "voxelize",
     "project_analytic",
     "tilted_axis_poses",
