@@ -83,3 +83,11 @@ def test_noise_in_air_is_not_material():
     noisy = blob + np.random.default_rng(0).normal(0, 0.5, blob.shape).astype(np.float32)
     d = detect_truncation(noisy, vg)
     assert not d.vertical and not d.lateral, d
+
+
+def test_a_thin_slab_is_never_vertically_truncated_and_keeps_rays():
+    vg = pdvc.VolumeGeometry((2, 40, 40))
+    vol = np.ones(vg.shape, np.float32)
+    assert not detect_truncation(vol, vg).vertical
+    geom = pdvc.parallel(np.array([0.0, 1.0]), det_shape=(2, 50), pixel=1.0)
+    assert truncation_weights(geom, vg).min() == 1.0  # both rows lie inside the slab

@@ -46,7 +46,8 @@ def truncation_weights(geom: VectorGeometry, vol_geom: VolumeGeometry, *, margin
     c = np.asarray(vol_geom.offset, float)
     half = 0.5 * np.asarray(vol_geom.extent_xyz, float)
     lo, hi = c - half, c + half
-    dz = margin_voxels * float(vol_geom.voxel_size[0])
+    # a thin slab (a few slices) keeps at least its middle half
+    dz = min(float(margin_voxels), 0.25 * vol_geom.shape[0]) * float(vol_geom.voxel_size[0])
     z_lo, z_hi = lo[2] + dz, hi[2] - dz
     nr, nc = geom.det_shape
     jj, ii = np.meshgrid(np.arange(nc) - (nc - 1) / 2, np.arange(nr) - (nr - 1) / 2)
@@ -127,6 +128,10 @@ def detect_truncation(volume, vol_geom: VolumeGeometry, *, threshold: float = 0.
     """
     v = np.asarray(volume, np.float32)
     nz, ny, nx = v.shape
+    if nz < 8:  # a stack of a few slices has no end slices to tell from its middle
+        vertical_possible = False
+    else:
+        vertical_possible = True
     y, x = np.meshgrid(np.linspace(-1, 1, ny), np.linspace(-1, 1, nx), indexing="ij")
     r = np.hypot(x, y)
     centre = float(v[nz // 3: max(2 * nz // 3, nz // 3 + 1)][:, r < 0.5].mean())
@@ -136,4 +141,4 @@ def detect_truncation(volume, vol_geom: VolumeGeometry, *, threshold: float = 0.
     ends = float(np.concatenate([v[:m], v[-m:]])[:, r < 0.9].mean()) / centre
     ring = (r > 0.9) & (r <= 1.0)
     edge = float(v[nz // 4: max(3 * nz // 4, nz // 4 + 1)][:, ring].mean()) / centre
-    return Truncation(ends > threshold, edge > threshold, ends, edge)
+    return Truncation(vertical_possible and ends > threshold, edge > threshold, ends, edge)
