@@ -1,7 +1,10 @@
 """From a TOML configuration to calibration-ready inputs (the CLI's front end).
 
-``load_scan(config)`` reads the projections (and flats/darks), normalises
-them to line integrals, applies the beam-hardening polynomial, builds the
+``load_scan(config)`` reads the projections (and flats/darks; bad pixels
+interpolated), says what the values are (counts, transmission, line
+integrals) and why, normalises them to line integrals, measures the air
+level (and subtracts it with ``[preprocess] air = "auto"``), applies the
+beam-hardening polynomial, builds the
 nominal geometry (circular cone/parallel, vector rows or a vendor file),
 crops the detector ROI, bins, and builds the reconstruction grid; it
 returns them with the engine options of ``[calibration]`` and the fully
@@ -36,6 +39,8 @@ class Scan:
     config: object  # the resolved Config
     notes: tuple
     raw: object
+    problems: tuple = ()  # what the inputs look wrong in (air level off 0, values unlike is_raw says)
+    air: object = None  # the pdvc.io.AirEstimate of the line integrals (before any subtraction)
 
 
 def calibration_options(cal, det_shape) -> dict:
@@ -46,7 +51,10 @@ def calibration_options(cal, det_shape) -> dict:
         stages = tuple(Stage.from_dict(d) for d in cal.stage)
     else:
         stages = resolve_stages(det_shape, recipe=cal.recipe, **cal.recipe_parameters())
-    opts = dict(recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init)
+    opts = dict(
+        recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
+        truncation=cal.truncation,
+    )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)
     return opts
@@ -79,13 +87,35 @@ def _vendor(cfg):
 
 
 def load_scan(config, *, out_dir=None) -> Scan:
-    """Read and prepare everything a ``[data]``/``[geometry]``/``[volume]`` config describes."""
-    from .io import beam_hardening, detector_roi, flats_from_columns, normalize, read_projections
+    """Read and prepare everything a ``[data]``/``[geometry]``/``[volume]`` config describes.
+
+    The notes say what was read and done: the data kind assumed and why, bad
+    pixels interpolated, clipping, the air level (subtracted or not). Input
+    problems (air level off 0, values that do not look like ``is_raw``
+    says) are in ``Scan.problems`` and also as ``warning:`` notes.
+    """
+    from .io import (
+        beam_hardening,
+        classify_values,
+        detector_roi,
+        estimate_air,
+        flats_from_columns,
+        normalize,
+        read_projections,
+        subtract_air,
+    )
     from .io._config import build_geometry, build_volume_geometry, check_coverage, load_config
 
     cfg = load_config(config)
     d = cfg.data
-    notes = []
+    pp = cfg.preprocess
+    notes, problems = [], []
+
+    def warn(text):
+        problems.append(text)
+        notes.append(f"warning: {text}")
+        log.warning("%s", text)
+
     raw = read_projections(
         d.path,
         fmt=d.format,
@@ -93,25 +123,64 @@ def load_scan(config, *, out_dir=None) -> Scan:
         darks=d.darks,
         dataset=d.dataset,
         sinogram=d.sinogram,
-        is_raw=None if d.is_raw == "auto" else bool(d.is_raw),
+        is_raw=None if d.is_raw == "auto" else (d.is_raw if isinstance(d.is_raw, str) else bool(d.is_raw)),
+        bad_pixels=pp.mask,
+        dead_columns=pp.dead_columns,
     )
-    notes.append(f"read {raw.format} {d.path}: {raw.data.shape[0]} views of {raw.data.shape[1]}x{raw.data.shape[2]} px, {'raw counts' if raw.is_raw else 'line integrals'}")
+    words = {"counts": "raw counts", "transmission": "transmission (I/I0)", "line_integrals": "line integrals"}
+    notes.append(f"read {raw.format} {d.path}: {raw.data.shape[0]} views of {raw.data.shape[1]}x{raw.data.shape[2]} px, {words[raw.kind]}")
+    n_bad = int(raw.metadata.get("bad_pixels", 0))
+    if pp.mask is not None or pp.dead_columns is not None:
+        notes.append(f"{n_bad} bad detector pixels ({raw.metadata.get('bad_pixels_source')}) interpolated along their rows")
+    reason = raw.metadata.get("is_raw_reason", "")
+    if d.is_raw == "auto":
+        what = f"data taken as {words[raw.kind]}" + (" (-log taken)" if raw.kind == "transmission" else "")
+        kind_note = f"{what}: {reason}; set [data] is_raw to override"
+    else:
+        kind_note = f"data taken as {words[raw.kind]}: [data] is_raw = {str(d.is_raw).lower() if isinstance(d.is_raw, bool) else repr(d.is_raw)}"
+    notes.append(kind_note)
+    log.info("%s", kind_note)
+    float_data = not np.issubdtype(np.dtype(raw.metadata.get("raw_dtype", "float32")), np.integer)
+    if float_data and (d.is_raw != "auto" or raw.flats is not None):  # "auto" without flats: classified already
+        looks, why = classify_values(raw.data)
+        if looks != raw.kind:
+            said = "[data] is_raw says" if d.is_raw != "auto" else "with flats, taken as"
+            warn(f"{said} {words[raw.kind]} but the values look like {words[looks]} ({why})")
     if d.open_beam_columns is not None:
         a, b = d.open_beam_columns
         raw = flats_from_columns(raw, columns=slice(a, b))
         notes.append(f"flats from open-beam columns {a}..{b - 1}")
-    pp = cfg.preprocess
     p, rep = normalize(raw, flat_interpolation=pp.flat_interpolation, clip_min=pp.clip_min)
     n_clipped = int(getattr(rep, "n_clipped", 0))
     if n_clipped:
         notes.append(f"normalisation clipped {n_clipped} non-positive or tiny transmissions (clip_min {pp.clip_min:g})")
     gamma2_counts = None
     if cfg.calibration.noise == "counts":  # on the full-resolution line integrals, before binning
+        if raw.kind != "counts":
+            raise PdvcError(
+                f"calibration.noise = 'counts' needs raw counts with flats; these data are {words[raw.kind]}"
+            )
         gamma2_counts = counts_noise_variance(raw, p)
         if pp.bin > 1:
             from .correlation import coarse_noise_factor
 
             gamma2_counts *= coarse_noise_factor(int(pp.bin))
+    air = estimate_air(p)
+    if pp.air == "auto":
+        p, air = subtract_air(p, air)
+        if air.found:
+            lo, hi = air.fitted_range
+            notes.append(
+                f"air background subtracted ([preprocess] air = \"auto\"): per-view offset (median "
+                f"{air.level:.4g}, transmission {air.transmission:.3f}) plus a degree-{air.degree} column profile "
+                f"{lo:.4g} .. {hi:.4g}; the rays that miss the sample now read 0"
+            )
+        else:
+            warn("[preprocess] air = \"auto\" but no air was found (the sample covers the detector): nothing subtracted")
+    else:
+        notes.append(air.summary())
+        if air.problem() is not None:
+            warn(air.problem())
     if pp.beam_hardening is not None:
         p = beam_hardening(p, pp.beam_hardening)
         notes.append(f"beam-hardening polynomial {list(pp.beam_hardening)}")
@@ -157,6 +226,8 @@ def load_scan(config, *, out_dir=None) -> Scan:
         config=resolved,
         notes=tuple(notes),
         raw=raw,
+        problems=tuple(problems),
+        air=air,
     )
 
 
@@ -171,6 +242,7 @@ def inspect_scan(config) -> tuple[list, list]:
     p = scan.projections
     lines.append(f"config {config}")
     lines.extend(scan.notes)
+    problems.extend(scan.problems)
     lines.append(f"geometry: {g.kind} beam, {g.n_views} views, detector {g.det_shape[0]}x{g.det_shape[1]}")
     from .correlation import view_angles
 

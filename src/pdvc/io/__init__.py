@@ -29,8 +29,19 @@ from ._config import (
 )
 from ._export import astra_volume_geometry, export_astra, export_cil, export_leap, export_tigre, tigre_to_geometry, write_exports
 from ._fingerprint import run_fingerprint
-from ._preprocess import PreprocessReport, beam_hardening, detector_roi, flats_from_columns, normalize
-from ._projections import DataError, FormatError, InputFileError, RawScan, read_projections
+from ._preprocess import (
+    AirEstimate,
+    PreprocessReport,
+    bad_pixel_mask,
+    beam_hardening,
+    detector_roi,
+    estimate_air,
+    fill_bad_pixels,
+    flats_from_columns,
+    normalize,
+    subtract_air,
+)
+from ._projections import DataError, FormatError, InputFileError, RawScan, classify_values, read_projections
 from ._vendor import VendorGeometry, read_nikon, read_skyscan, read_vendor_geometry
 
 __all__ = [
@@ -41,6 +52,7 @@ __all__ = [
     "export_astra", "astra_volume_geometry", "export_tigre", "tigre_to_geometry", "export_leap", "export_cil", "write_exports",
     "RawScan",
     "read_projections",
+    "classify_values",
     "DataError",
     "InputFileError",
     "FormatError",
@@ -49,6 +61,11 @@ __all__ = [
     "flats_from_columns",
     "beam_hardening",
     "detector_roi",
+    "bad_pixel_mask",
+    "fill_bad_pixels",
+    "AirEstimate",
+    "estimate_air",
+    "subtract_air",
     "OutputExistsError",
     "atomic_path",
     "atomic_write_bytes",

@@ -22,8 +22,13 @@ that type needs) are required; everything else has the default shown.
     # flats = "flats/"          # open-beam images: file, folder or glob
     # darks = "darks/*.tif"     # dark images: file, folder or glob
     sinogram = false            # true: stored as sinograms [row, view, col]
-    is_raw = "auto"             # true: intensities (-log of flat/dark-normalised values is taken);
-                                # false: line integrals already; "auto": decided from the data
+    is_raw = "auto"             # true: raw counts (-log of flat/dark-normalised values is taken; needs flats);
+                                # "transmission": flat-field-corrected I/I0 (-log taken, no flats needed);
+                                # false: line integrals already; "auto": counts with flats, integers or a file
+                                # that says counts, else decided from the values (pdvc.io.classify_values:
+                                # values in (0, ~1.05] with the air at the top -> transmission; air near 0
+                                # with the sample larger -> line integrals; values >> 1 -> counts); the
+                                # decision and why are printed by `pdvc inspect` and `pdvc calibrate`
     # open_beam_columns = [0, 40]  # columns [a, b) free of sample, to normalise views without flats
 
     [geometry]
@@ -63,8 +68,22 @@ that type needs) are required; everything else has the default shown.
     offset = [0.0, 0.0, 0.0]    # position of the volume centre [x, y, z], mm
 
     [preprocess]
+    # mask = "mask.tif"         # bad detector pixels: a (rows, cols) .tif/.npy image, nonzero = bad, in
+                                # the layout of the views; replaced in projections, flats and darks by
+                                # linear interpolation along the row from the nearest good pixels,
+                                # before anything else (NaN/Inf there are then no error)
+    # dead_columns = [12, 13]   # whole bad detector columns (added to mask); a lone dead column
+                                # becomes the mean of its two neighbours
     flat_interpolation = "linear"  # "linear" (flats interpolated in time between groups) | "mean"
     clip_min = 1e-6             # transmissions below this are clipped (0 < clip_min < 1)
+    air = "none"                # the air level (what rays missing the sample read; 0 when the flats
+                                # match) is always measured and reported (pdvc.io.estimate_air), a problem
+                                # when off 0 by more than 0.02 (and 3x its uncertainty) or varying by more
+                                # than 0.05 across the columns; "none": report only; "auto": subtract
+                                # it -- a per-view offset plus a degree-2 polynomial profile across the
+                                # columns, shared by all views, fitted to the air pixels (a flat mismatch multiplies
+                                # the beam by view x column factors: additive in line integrals; the
+                                # shared profile bridges columns the sample always covers)
     # beam_hardening = [1.0, 0.05, 0.01]  # p -> c1 p + c2 p^2 + c3 p^3 ... on the line integrals
     # roi_rows = [100, 900]     # keep detector rows [a, b) (crop, geometry follows)
     # roi_cols = [0, 1024]      # keep detector columns [a, b)
@@ -104,6 +123,8 @@ that type needs) are required; everything else has the default shown.
     fix_scale = true            # cone beam: keep the nominal mean source distance (gauge)
     backend = "auto"            # projector backend
     init = "auto"               # "auto" | "axis" | "none": axis offset from opposite views first
+    truncation = "auto"         # "auto" | "on" | "off": drop the rays that leave the volume through its top or
+                                # bottom face (a sample longer than the volume); "auto": when the sample reaches them
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -221,7 +242,7 @@ class DataConfig:
     flats: Optional[str] = None
     darks: Optional[str] = None
     sinogram: bool = False
-    is_raw: Union[bool, str] = "auto"
+    is_raw: Union[bool, str] = "auto"  # True, False, "auto" or "transmission"
     open_beam_columns: Optional[tuple[int, int]] = None
 
 
@@ -304,6 +325,9 @@ class PreprocessConfig:
     roi_rows: Optional[tuple[int, int]] = None
     roi_cols: Optional[tuple[int, int]] = None
     bin: int = 1
+    air: str = "none"
+    mask: Optional[str] = None
+    dead_columns: Optional[tuple[int, ...]] = None
 
 
 @dataclass(frozen=True)
@@ -340,6 +364,7 @@ class CalibrationConfig:
     backend: str = "auto"
     init: str = "auto"
     noise: str = "image"
+    truncation: str = "auto"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
@@ -429,7 +454,7 @@ class Config:
             vol = VolumeConfig(tuple(vol_geom.shape), tuple(vol_geom.voxel_size), tuple(vol_geom.offset))
         cal = self.calibration
         if stages is not None:
-            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise")}
+            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation")}
             cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
         return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
@@ -583,8 +608,10 @@ def _parse_data(t: _Table) -> DataConfig:
     darks = None if darks is None else _path(darks, w + "darks", t.base)
     sinogram = _boolean(t.pop("sinogram", False), w + "sinogram")
     is_raw = t.pop("is_raw", "auto")
-    if not (isinstance(is_raw, bool) or is_raw == "auto"):
-        raise ConfigError(f"data.is_raw must be true, false or \"auto\", got {_got(is_raw)}")
+    if not (isinstance(is_raw, bool) or is_raw in ("auto", "transmission")):
+        raise ConfigError(
+            f"data.is_raw must be true, false or \"auto\" (or \"transmission\" for I/I0 data), got {_got(is_raw)}"
+        )
     obc = t.pop("open_beam_columns")
     obc = None if obc is None else _range(obc, w + "open_beam_columns")
     t.finish(_DATA_KEYS)
@@ -708,8 +735,19 @@ def _parse_preprocess(t: _Table) -> PreprocessConfig:
     rc = t.pop("roi_cols")
     rc = None if rc is None else _range(rc, w + "roi_cols")
     b = _integer(t.pop("bin", 1), w + "bin", minimum=1)
+    air = _choice(t.pop("air", "none"), w + "air", _AIR_MODES)
+    mask = t.pop("mask")
+    mask = None if mask is None else _path(mask, w + "mask", t.base)
+    dc = t.pop("dead_columns")
+    if dc is not None:
+        if not isinstance(dc, (list, tuple)) or not dc:
+            raise ConfigError(f"preprocess.dead_columns must be a non-empty list of column indices, got {_got(dc)}")
+        dc = tuple(_integer(c, f"{w}dead_columns[{i}]", minimum=0) for i, c in enumerate(dc))
     t.finish(tuple(f.name for f in dataclasses.fields(PreprocessConfig)))
-    return PreprocessConfig(interp, clip_min, bh, rr, rc, b)
+    return PreprocessConfig(interp, clip_min, bh, rr, rc, b, air=air, mask=mask, dead_columns=dc)
+
+
+_AIR_MODES = ("none", "auto")
 
 
 _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
@@ -796,6 +834,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         backend=_string(t.pop("backend", d.backend), w + "backend"),
         init=_choice(t.pop("init", d.init), w + "init", ("auto", "axis", "none")),
         noise=_choice(t.pop("noise", d.noise), w + "noise", ("image", "counts")),
+        truncation=_choice(t.pop("truncation", d.truncation), w + "truncation", ("auto", "on", "off")),
         **kw,
     )
     t.finish(_CALIBRATION_KEYS)

@@ -2,6 +2,39 @@
 
 ``p = -log((I - D) / (F - D))`` with ``D`` the mean dark and ``F`` the flat
 of that view (``DESIGN.md`` §1: projections are float32 line integrals).
+Transmission data (``RawScan.kind == "transmission"``, ``I/I0`` already)
+give ``p = -log(T)`` (divided by the flat first when there are flats).
+
+Bad pixels
+----------
+:func:`fill_bad_pixels` replaces masked detector pixels by linear
+interpolation along their row between the nearest good pixels on either
+side (the nearest one at the ends of a row): the standard dead-pixel
+correction. A dead column becomes the mean of its two neighbours.
+:func:`pdvc.io.read_projections` applies it (``bad_pixels=``,
+``dead_columns=``) before anything else.
+
+Air level
+---------
+The rays that miss the sample should read 0 in line integrals. When the flat
+field does not match the projections (wrong or drifting flats, data given as
+``I/I0`` with a reference that is not the open beam), they read
+``-log(a)``, ``a`` the ratio of the beam seen in the projections to the
+flat. :func:`estimate_air` measures it and :func:`subtract_air` removes it.
+The model: a flat mismatch is a factor ``b_k · A(c)`` on the intensity (a
+beam intensity per view, a detector profile), so in line integrals it adds
+``o_k + P(c)``, a per-view offset plus a column profile shared by all views.
+``P`` is a low-order polynomial (degree 2 by default, zero mean over the
+columns) in the column index, fitted jointly to the air pixels of every
+view: a column never in air at one view is in air at others, and the
+columns that the sample always covers (the middle of a centred sample) are
+bridged smoothly instead of guessed view by view. Air pixels are found
+iteratively: the lowest decile of each view to start, then the pixels
+within ``[-5 s, +3 s]`` of the current model (``s`` the robust spread of
+the air residuals: their noise), refitting ``o_k`` and ``P``
+until the selection stops changing. A view without air (fewer than 0.5 %
+of its pixels) takes the offset interpolated between its neighbours.
+Variation along rows is not modelled.
 
 Flats of one view
 -----------------
@@ -39,6 +72,11 @@ __all__ = [
     "flats_from_columns",
     "beam_hardening",
     "detector_roi",
+    "bad_pixel_mask",
+    "fill_bad_pixels",
+    "AirEstimate",
+    "estimate_air",
+    "subtract_air",
 ]
 
 log = logging.getLogger("pdvc.io")
@@ -76,6 +114,8 @@ class PreprocessReport:
         Views holding at least one clipped pixel.
     clipped_counts : tuple of int
         Clipped pixels in each of ``clipped_views``.
+    kind : str
+        What the data were: ``"counts"``, ``"transmission"`` or ``"line_integrals"``.
     """
 
     is_raw: bool
@@ -90,16 +130,20 @@ class PreprocessReport:
     clipped_fraction: float
     clipped_views: tuple[int, ...]
     clipped_counts: tuple[int, ...]
+    kind: str = "counts"
 
     def summary(self) -> str:
         """One line for logs and reports."""
         if not self.is_raw:
             return "data were line integrals already: copied unchanged"
-        dark = f"{self.n_darks} darks" if self.n_darks else "no darks"
-        return (
-            f"{self.n_flats} flats ({self.flat_method}), {dark}; {self.n_clipped} pixels clipped "
-            f"({self.clipped_fraction:.3g} of all) in {len(self.clipped_views)} views"
+        clipped = (
+            f"{self.n_clipped} pixels clipped ({self.clipped_fraction:.3g} of all) in {len(self.clipped_views)} views"
         )
+        if self.kind == "transmission":
+            flats = f"divided by {self.n_flats} flats ({self.flat_method})" if self.n_flats else "no flats"
+            return f"transmission I/I0: -log taken, {flats}; {clipped}"
+        dark = f"{self.n_darks} darks" if self.n_darks else "no darks"
+        return f"{self.n_flats} flats ({self.flat_method}), {dark}; {clipped}"
 
 
 def _flat_groups(raw: RawScan, method: str) -> tuple[list[np.ndarray], np.ndarray | None]:
@@ -157,6 +201,9 @@ def normalize(
     raw : RawScan
         Counts with flats (and optionally darks). If ``raw.is_raw`` is False
         the data are line integrals already and come back as a float32 copy.
+        If ``raw.kind == "transmission"`` the data are ``I/I0`` already:
+        ``-log(data)`` (``-log(data / flat)`` when there are flats, e.g. from
+        :func:`flats_from_columns`); darks do not apply to them.
     flat_interpolation : {"linear", "mean"}
         ``"linear"``: with flats in two or more groups at known
         ``raw.flat_positions`` (view units), view ``k`` uses the flat
@@ -176,7 +223,8 @@ def normalize(
     Raises
     ------
     DataError
-        Raw counts without flats; flats not above the darks at some pixel.
+        Raw counts without flats; flats not above the darks at some pixel;
+        transmission data with darks.
     InputTypeError
         ``raw`` not a :class:`RawScan`.
 
@@ -194,17 +242,28 @@ def normalize(
     if not (isinstance(clip_min, (int, float, np.floating)) and 0 < clip_min < 1):
         raise DataError(f"clip_min must be a number in (0, 1), got {clip_min!r}")
     clip_min = float(clip_min)
+    kind = getattr(raw, "kind", "counts" if raw.is_raw else "line_integrals")
     if not raw.is_raw:
-        report = PreprocessReport(False, flat_interpolation, "none", 0, 0, (), clip_min, 0, 0, 0.0, (), ())
+        report = PreprocessReport(False, flat_interpolation, "none", 0, 0, (), clip_min, 0, 0, 0.0, (), (), kind)
         log.info("normalize: %s", report.summary())
         return np.array(raw.data, dtype=np.float32, copy=True), report
-    if raw.flats is None:
+    transmission = kind == "transmission"
+    if transmission and raw.darks is not None:
+        raise DataError(
+            "transmission data (I/I0) are dark- and flat-corrected already: darks do not apply; "
+            "remove them, or set is_raw=True if the values are counts"
+        )
+    if raw.flats is None and not transmission:
         raise DataError("raw counts need flats; pass flats= or set is_raw=False (or use flats_from_columns)")
 
     dark = raw.darks.mean(0, dtype=np.float64) if raw.darks is not None else 0.0
-    groups, positions = _flat_groups(raw, flat_interpolation)
-    means = _GroupMeans(raw.flats, groups, dark)
-    _check_flats(means, len(groups), raw.darks is not None)
+    if raw.flats is None:  # transmission without flats: a unit flat
+        groups, positions = [np.arange(1)], None
+        means = _GroupMeans(np.ones((1,) + raw.det_shape, dtype=np.float32), groups, 0.0)
+    else:
+        groups, positions = _flat_groups(raw, flat_interpolation)
+        means = _GroupMeans(raw.flats, groups, dark)
+        _check_flats(means, len(groups), raw.darks is not None)
 
     n_views = raw.n_views
     out = np.empty(raw.data.shape, dtype=np.float32)
@@ -236,8 +295,8 @@ def normalize(
     report = PreprocessReport(
         is_raw=True,
         flat_interpolation=flat_interpolation,
-        flat_method="mean" if positions is None else "linear",
-        n_flats=int(raw.flats.shape[0]),
+        flat_method="none" if raw.flats is None else ("mean" if positions is None else "linear"),
+        n_flats=0 if raw.flats is None else int(raw.flats.shape[0]),
         n_darks=0 if raw.darks is None else int(raw.darks.shape[0]),
         flat_group_positions=() if positions is None else tuple(float(p) for p in positions),
         clip_min=clip_min,
@@ -246,8 +305,9 @@ def normalize(
         clipped_fraction=n_clipped / raw.data.size,
         clipped_views=tuple(clipped_views),
         clipped_counts=tuple(clipped_counts),
+        kind=kind,
     )
-    if flat_interpolation == "linear" and positions is None:
+    if flat_interpolation == "linear" and positions is None and raw.flats is not None:
         log.info("normalize: flat positions unknown or a single group; flats averaged")
     if n_clipped:
         log.warning(
@@ -270,8 +330,8 @@ def flats_from_columns(raw: RawScan, columns=slice(0, 30)) -> RawScan:
     Parameters
     ----------
     raw : RawScan
-        Counts (``is_raw`` True). Its darks, if any, are kept and subtracted
-        by :func:`normalize` from both data and flats.
+        Counts or transmission (``is_raw`` True). Its darks, if any, are
+        kept and subtracted by :func:`normalize` from both data and flats.
     columns : slice or sequence of int
         Open-beam detector columns. Default ``slice(0, 30)``.
 
@@ -292,7 +352,9 @@ def flats_from_columns(raw: RawScan, columns=slice(0, 30)) -> RawScan:
     if not isinstance(raw, RawScan):
         raise InputTypeError(f"raw must be a RawScan, got {type(raw).__name__}")
     if not raw.is_raw:
-        raise DataError("flats_from_columns needs raw counts (raw.is_raw True); these are line integrals")
+        raise DataError(
+            "flats_from_columns needs raw counts or transmission (raw.is_raw True); these are line integrals"
+        )
     n_cols = raw.det_shape[1]
     if isinstance(columns, slice):
         idx = np.arange(n_cols)[columns]
@@ -424,3 +486,427 @@ def detector_roi(p, geom: VectorGeometry, rows=None, cols=None) -> tuple[np.ndar
     c = _range(cols, geom.det_shape[1], "cols")
     out = np.array(arr[:, r[0] : r[1], c[0] : c[1]], dtype=np.float32, copy=True)
     return out, geom.cropped(r, c)
+
+
+# --------------------------------------------------------------------------- bad pixels
+
+
+def bad_pixel_mask(det_shape, mask=None, dead_columns=None) -> tuple[np.ndarray, str]:
+    """A boolean ``(n_rows, n_cols)`` mask of bad detector pixels, and a description of where it came from.
+
+    Parameters
+    ----------
+    det_shape : (n_rows, n_cols)
+        The detector, as the views are laid out (after ``sinogram=True``).
+    mask : str, os.PathLike or array, optional
+        A detector-shaped boolean or numeric image, nonzero (True, 1) = bad;
+        ``(n_cols,)`` is accepted for a one-row detector. A path is read as
+        TIFF (``.tif``/``.tiff``) or ``.npy``.
+    dead_columns : sequence of int, optional
+        Columns bad as a whole (negative indices count from the end).
+
+    Raises
+    ------
+    ShapeError
+        A mask of another shape, or a column outside the detector.
+    DataError
+        A mask holding NaN/Inf.
+    """
+    import os
+
+    from ._projections import _read_array_file
+
+    n_rows, n_cols = (int(v) for v in det_shape)
+    out = np.zeros((n_rows, n_cols), dtype=bool)
+    desc = []
+    if mask is not None:
+        if isinstance(mask, (str, os.PathLike)):
+            arr, src = _read_array_file(mask, "mask")
+            desc.append(f"mask {src}")
+        else:
+            arr = np.asarray(mask)
+            desc.append("mask array")
+        if arr.dtype != np.bool_ and (
+            not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating)
+        ):
+            raise InputTypeError(f"mask must be a boolean or numeric image, got dtype {arr.dtype}")
+        arr = np.asarray(arr)
+        if arr.ndim == 3 and arr.shape[0] == 1:
+            arr = arr[0]
+        if arr.ndim == 1 and n_rows == 1:
+            arr = arr[None, :]
+        if arr.shape != (n_rows, n_cols):
+            extra = f" or ({n_cols},) for a one-row detector" if n_rows == 1 else ""
+            raise ShapeError(
+                f"mask must be a detector-shaped image ({n_rows}, {n_cols}){extra} (the views' rows and columns), "
+                f"got shape {arr.shape}"
+            )
+        if arr.dtype != np.bool_ and not np.all(np.isfinite(arr)):
+            raise DataError("mask must be finite (0/1 or boolean; nonzero = bad pixel)")
+        out |= arr.astype(bool)
+    if dead_columns is not None:
+        try:
+            cols = np.asarray(dead_columns, dtype=np.int64).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            raise InputTypeError(f"dead_columns must be a sequence of column indices, got {dead_columns!r}") from exc
+        if np.any((cols < -n_cols) | (cols >= n_cols)):
+            raise ShapeError(f"dead_columns must lie inside the detector's {n_cols} columns, got {list(dead_columns)}")
+        cols = np.unique(cols % n_cols)
+        out[:, cols] = True
+        desc.append(f"dead columns {[int(c) for c in cols]}")
+    return out, ", ".join(desc) if desc else "none"
+
+
+def fill_bad_pixels(frames, mask) -> np.ndarray:
+    """Replace bad detector pixels by linear interpolation along their row from the nearest good pixels.
+
+    Parameters
+    ----------
+    frames : (n, n_rows, n_cols) array
+        Projections, flats or darks; not modified.
+    mask : (n_rows, n_cols) bool array
+        True at bad pixels (the same in every frame), see :func:`bad_pixel_mask`.
+
+    Returns
+    -------
+    (n, n_rows, n_cols) float32 array
+        A copy in which pixel ``(r, c)`` of the mask is
+        ``(1 - w) · f[r, a] + w · f[r, b]``, ``a < c < b`` the nearest good
+        columns of row ``r`` and ``w = (c - a) / (b - a)``; beyond the last
+        good pixel of a row, that pixel's value. A dead column between two
+        good ones becomes their mean. Whatever the masked pixels held (NaN
+        included) is not used.
+
+    Raises
+    ------
+    ShapeError
+        ``mask`` not ``(n_rows, n_cols)``.
+    DataError
+        A detector row that is bad in every column (nothing to interpolate
+        from along it).
+    """
+    arr = np.asarray(frames)
+    if arr.ndim != 3:
+        raise ShapeError(f"frames must have shape (n, n_rows, n_cols), got {arr.shape}")
+    m = np.asarray(mask, dtype=bool)
+    if m.shape != arr.shape[1:]:
+        raise ShapeError(f"mask must have the detector shape {arr.shape[1:]}, got {m.shape}")
+    out = np.array(arr, dtype=np.float32, copy=True)
+    if not m.any():
+        return out
+    full = np.flatnonzero(m.all(axis=1))
+    if full.size:
+        raise DataError(
+            f"detector row{'s' if full.size > 1 else ''} {[int(r) for r in full[:10]]} are bad in every column: "
+            "nothing to interpolate from along the row; crop them away ([preprocess] roi_rows) instead"
+        )
+    rr, cc, left, right, weight = [], [], [], [], []
+    for r in np.flatnonzero(m.any(axis=1)):
+        good = np.flatnonzero(~m[r])
+        bad = np.flatnonzero(m[r])
+        j = np.searchsorted(good, bad)  # good[j-1] < c < good[j]
+        a = good[np.clip(j - 1, 0, good.size - 1)]
+        b = good[np.clip(j, 0, good.size - 1)]
+        w = np.where(b != a, (bad - a) / np.maximum(b - a, 1), 0.0)
+        rr.append(np.full(bad.size, r))
+        cc.append(bad)
+        left.append(a)
+        right.append(b)
+        weight.append(w)
+    rr, cc, left, right = (np.concatenate(v) for v in (rr, cc, left, right))
+    w = np.concatenate(weight).astype(np.float32)
+    out[:, rr, cc] = (1.0 - w) * out[:, rr, left] + w * out[:, rr, right]
+    return out
+
+
+# --------------------------------------------------------------------------- air level
+
+AIR_TOLERANCE = 0.02
+"""Air levels (line integrals) within this of 0 are not reported as a problem (2 % in transmission)."""
+
+AIR_COLUMN_TOLERANCE = 0.05
+"""A fitted column profile of the air varying by more than this (peak to peak) is reported as a problem."""
+
+
+def _robust_std(x: np.ndarray, max_size: int = 500_000) -> float:
+    x = np.asarray(x).reshape(-1)
+    if x.size > max_size:
+        x = x[:: x.size // max_size + 1]
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+def _noise_std(s: np.ndarray) -> float:
+    """Pixel noise std from neighbour differences along the rows (robust: edges are a minority)."""
+    if s.shape[-1] < 2:
+        return 0.0
+    return _robust_std(np.diff(s, axis=-1)) / np.sqrt(2.0)
+
+
+@dataclass(frozen=True, eq=False)
+class AirEstimate:
+    """The air level of line integrals: what the rays that miss the sample read (0 when the flats match).
+
+    Attributes
+    ----------
+    found : bool
+        False when (almost) no pixel looked like air (sample wider than
+        the field of view): the other figures are then NaN and meaningless.
+    level : float
+        Median over the views of the per-view air level (line integral;
+        ``exp(-level)`` is the transmission of air).
+    per_view : (n_views,) float64 array
+        Air level of each view (mean over the columns of the fitted model).
+    profile : (n_cols,) float64 array
+        Measured air level of each column: median over the views of its air
+        pixels, corrected by the per-view offsets, plus ``level``; NaN in
+        columns that are never in air.
+    fitted : (n_cols,) float64 array
+        The fitted column profile ``level + P(c)``.
+    coefficients : tuple of float
+        ``P(c) = sum_i a_i x**i - mean``, ``x = 2 c / (n_cols - 1) - 1``:
+        ``(a_0, a_1, ...)``, lowest order first (``a_0`` absorbed by the
+        offsets).
+    degree : int
+        Degree of ``P``.
+    noise_std : float
+        Noise std of the air pixels (robust spread of their residuals to
+        the fitted background).
+    level_std : float
+        Uncertainty of ``level`` (robust spread of ``per_view`` over the
+        square root of the number of views with air).
+    air_fraction : float
+        Fraction of the examined pixels taken as air.
+    n_air_columns : int
+        Columns with air in at least some views (finite ``profile``).
+    views_without_air : tuple of int
+        Views with too little air (offset interpolated from neighbours).
+    """
+
+    found: bool
+    level: float
+    per_view: np.ndarray
+    profile: np.ndarray
+    fitted: np.ndarray
+    coefficients: tuple
+    degree: int
+    noise_std: float
+    level_std: float
+    air_fraction: float
+    n_air_columns: int
+    views_without_air: tuple
+
+    @property
+    def transmission(self) -> float:
+        """``exp(-level)``: the transmission the air reads."""
+        return float(np.exp(-self.level))
+
+    @property
+    def column_range(self) -> tuple[float, float]:
+        """Smallest and largest measured per-column air level (NaN when none)."""
+        f = self.profile[np.isfinite(self.profile)]
+        return (float(f.min()), float(f.max())) if f.size else (float("nan"), float("nan"))
+
+    @property
+    def fitted_range(self) -> tuple[float, float]:
+        """Smallest and largest value of the fitted column profile."""
+        return float(self.fitted.min()), float(self.fitted.max())
+
+    @property
+    def significant(self) -> bool:
+        """Whether the air is measurably off 0: the level beyond ``max(AIR_TOLERANCE, 3 level_std)``,
+        or the fitted column profile varying by more than ``AIR_COLUMN_TOLERANCE``."""
+        if not self.found:
+            return False
+        lo, hi = self.fitted_range
+        return abs(self.level) > max(AIR_TOLERANCE, 3.0 * self.level_std) or (hi - lo) > AIR_COLUMN_TOLERANCE
+
+    def background(self) -> np.ndarray:
+        """The fitted air of every view and column, ``(n_views, n_cols)`` float64: ``o_k + P(c)``."""
+        return self.per_view[:, None] + (self.fitted - self.level)[None, :]
+
+    def summary(self) -> str:
+        """One line for logs, notes and reports."""
+        if not self.found:
+            return "air level: no air found (the sample covers the detector): not estimated"
+        lo, hi = self.column_range
+        flo, fhi = self.fitted_range
+        return (
+            f"air level {self.level:.4g} in the line integrals (transmission {self.transmission:.3f}), median over "
+            f"{self.per_view.size} views (view to view spread {_robust_std(self.per_view):.2g}); across columns "
+            f"{lo:.4g} .. {hi:.4g} measured in {self.n_air_columns} of {self.profile.size} columns "
+            f"(degree-{self.degree} fit {flo:.4g} .. {fhi:.4g}); noise std {self.noise_std:.2g}; "
+            f"{100 * self.air_fraction:.0f}% of the pixels are air"
+        )
+
+    def problem(self) -> str | None:
+        """What ``pdvc inspect`` reports when the air is off 0, or None."""
+        if not self.significant:
+            return None
+        lo, hi = self.fitted_range
+        return (
+            f"air level in the line integrals is {self.level:.2f} (transmission {self.transmission:.2f}), "
+            f"{lo:.2f} .. {hi:.2f} across the columns: the flat field does not match; "
+            f'set [preprocess] air = "auto" to normalise it'
+        )
+
+
+def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
+                 max_pixels: int = 1_000_000) -> AirEstimate:
+    """Estimate the air level of line integrals: per view, per column, and overall.
+
+    Parameters
+    ----------
+    p : (n_views, n_rows, n_cols) array
+        Line integrals (after ``-log``); finite. Not modified.
+    degree : int, >= 0
+        Degree of the column profile ``P`` (module docstring). 2 follows a
+        smooth flat-field mismatch across the detector; 0 assumes none.
+    max_rows, max_pixels : int
+        At most this many rows, evenly spaced, are examined, and fewer when
+        needed to keep ``n_views x rows x n_cols`` under ``max_pixels`` (the
+        estimate is a median over many pixels; this bounds the cost).
+    max_iter : int
+        Passes of the select-and-fit loop at most (it usually stops after
+        3-8, when the selection no longer changes).
+
+    Returns
+    -------
+    AirEstimate
+        ``level``, ``per_view``, ``profile``, ``fitted``, ... (see there).
+
+    Notes
+    -----
+    The model is ``p[k, r, c] = o_k + P(c) + sample + noise`` with the
+    sample >= 0; air pixels are those within ``[-5 s, +3 s]`` of
+    ``o_k + P(c)`` (``s`` the robust spread of the air residuals: their
+    noise), found iteratively from the lowest decile of each view.
+    Dead pixels and zingers fall outside the window; the level is a median.
+    See the module docstring for why a per-view offset plus a column profile.
+    """
+    arr = np.asarray(p)
+    if arr.ndim != 3 or min(arr.shape) < 1:
+        raise ShapeError(f"p must have shape (n_views, n_rows, n_cols), got {arr.shape}")
+    degree = int(degree)
+    if degree < 0:
+        raise DataError(f"degree must be >= 0, got {degree}")
+    nv, nr, nc = arr.shape
+    n_rows_used = max(1, min(nr, int(max_rows), int(max_pixels) // max(nv * nc, 1)))
+    rows = np.unique(np.linspace(0, nr - 1, n_rows_used).round().astype(np.int64))
+    S = np.asarray(arr[:, rows, :], dtype=np.float64)
+    if not np.all(np.isfinite(S)):
+        raise DataError("p must be finite to estimate the air level")
+    per_view_px = S[0].size
+    x = np.linspace(-1.0, 1.0, nc) if nc > 1 else np.zeros(1)
+    deg = min(degree, nc - 1)
+    V = np.vander(x, deg + 1, increasing=True)  # (nc, deg + 1)
+
+    sel = S <= np.quantile(S.reshape(nv, -1), 0.1, axis=1)[:, None, None]
+    P = np.zeros(nc)
+    coef = np.zeros(deg + 1)
+    o = np.zeros(nv)
+    good = np.ones(nv, dtype=bool)
+    min_px = max(3, int(np.ceil(0.005 * per_view_px)))
+    for _ in range(max_iter):
+        nsel = sel.reshape(nv, -1).sum(axis=1)
+        good = nsel >= min_px
+        if not good.any():
+            break
+        # per-view offsets: mean of the selected residuals (the window already trims outliers)
+        o_sum = np.where(sel, S - P, 0.0).reshape(nv, -1).sum(axis=1)
+        o = np.where(good, o_sum / np.maximum(nsel, 1), np.nan)
+        o = np.interp(np.arange(nv), np.flatnonzero(good), o[good])
+        # column profile: least squares of (p - o_k) on the polynomial, over the selected pixels
+        w = sel.sum(axis=(0, 1)).astype(np.float64)
+        ysum = np.where(sel, S - o[:, None, None], 0.0).sum(axis=(0, 1))
+        if np.count_nonzero(w) > deg:
+            coef = np.linalg.lstsq(V.T @ (w[:, None] * V), V.T @ ysum, rcond=None)[0]
+            P = V @ coef
+            P -= P.mean()
+        res = S - o[:, None, None] - P
+        s = max(_robust_std(res[sel], 200_000), 1e-6 * (1.0 + abs(float(np.median(o)))))
+        new = (res > -5.0 * s) & (res < 3.0 * s)
+        changed = np.count_nonzero(new != sel)
+        sel = new
+        if changed <= 1e-4 * sel.size:
+            break
+
+    found = bool(good.any()) and sel.mean() >= 0.001
+    if not found:
+        nan = np.full(nc, np.nan)
+        return AirEstimate(False, float("nan"), np.full(nv, np.nan), nan, nan.copy(), tuple(float(c) for c in coef),
+                           deg, _noise_std(S), float("nan"), float(sel.mean()), 0, tuple(range(nv)))
+    # final offsets as medians (robust), then the measured per-column profile
+    R = np.where(sel, S - P, np.nan).reshape(nv, -1)
+    med = np.full(nv, np.nan)
+    med[good] = np.nanmedian(R[good], axis=1)
+    o = np.interp(np.arange(nv), np.flatnonzero(good), med[good])
+    level = float(np.median(o[good]))
+    Y = np.where(sel, S - o[:, None, None], np.nan).transpose(2, 0, 1).reshape(nc, -1)
+    cnt = sel.sum(axis=(0, 1))
+    profile = np.full(nc, np.nan)
+    ok = cnt >= 3
+    if ok.any():
+        profile[ok] = np.nanmedian(Y[ok], axis=1) + level
+    level_std = _robust_std(o[good]) / np.sqrt(max(int(good.sum()), 1))
+    return AirEstimate(
+        found=True,
+        level=level,
+        per_view=o,
+        profile=profile,
+        fitted=level + P,
+        coefficients=tuple(float(c) for c in coef),
+        degree=deg,
+        noise_std=float(s),
+        level_std=float(level_std),
+        air_fraction=float(sel.mean()),
+        n_air_columns=int(ok.sum()),
+        views_without_air=tuple(int(k) for k in np.flatnonzero(~good)),
+    )
+
+
+def subtract_air(p, estimate: AirEstimate | None = None, **kwargs) -> tuple[np.ndarray, AirEstimate]:
+    """Subtract the air background ``o_k + P(c)`` so that the rays missing the sample read 0.
+
+    Parameters
+    ----------
+    p : (n_views, n_rows, n_cols) array
+        Line integrals; not modified.
+    estimate : AirEstimate, optional
+        From :func:`estimate_air` on these ``p``; computed (with ``kwargs``)
+        when not given.
+
+    Returns
+    -------
+    p_corrected : (n_views, n_rows, n_cols) float32 array
+        ``p - o_k - P(c)``, the same background for every row of view ``k``.
+    estimate : AirEstimate
+        What was subtracted (``level``, ``per_view``, ``fitted``). When no air
+        was found nothing is subtracted (a copy is returned).
+
+    Raises
+    ------
+    ShapeError
+        ``estimate`` made for another number of views or columns.
+    """
+    arr = np.asarray(p)
+    if estimate is None:
+        estimate = estimate_air(arr, **kwargs)
+    if not isinstance(estimate, AirEstimate):
+        raise InputTypeError(f"estimate must be an AirEstimate (see estimate_air), got {type(estimate).__name__}")
+    if arr.ndim != 3 or estimate.per_view.shape != (arr.shape[0],) or estimate.fitted.shape != (arr.shape[2],):
+        raise ShapeError(
+            f"estimate is for {estimate.per_view.size} views of {estimate.fitted.size} columns, "
+            f"p has shape {arr.shape}"
+        )
+    if not estimate.found:
+        log.warning("subtract_air: no air found; nothing subtracted")
+        return np.array(arr, dtype=np.float32, copy=True), estimate
+    bg = estimate.background()
+    out = np.empty(arr.shape, dtype=np.float32)
+    for k in range(arr.shape[0]):  # one view at a time: no float64 copy of the stack
+        out[k] = arr[k] - bg[k][None, :]
+    log.info("subtract_air: %s", estimate.summary())
+    return out, estimate

@@ -27,6 +27,27 @@ projection, ``n_views - 0.5`` after the last one, ``k - 0.5`` between
 projections ``k - 1`` and ``k``. NXtomo files give it through the order of
 ``image_key``; for other formats it is unknown (``None``) unless passed as
 ``flat_positions=``.
+
+What the values are
+-------------------
+``RawScan.kind`` says what the numbers are: ``"counts"`` (detector counts:
+:func:`pdvc.io.normalize` takes ``-log((I - D) / (F - D))`` and needs flats),
+``"transmission"`` (flat-field-corrected intensities ``I/I0``: ``-log`` is
+taken, no flats needed) or ``"line_integrals"`` (used as they are). With
+``is_raw=None`` (``"auto"``) the reader decides: counts when there are flats,
+when the file says so or when the values are integers; otherwise
+:func:`classify_values` looks at the values (robust percentiles and the most
+common level, never min/max: dead pixels and zingers exist). The decision and
+its reason are logged and kept in ``metadata["is_raw_reason"]``.
+
+Bad pixels
+----------
+``bad_pixels=`` (a detector-shaped boolean or 0/1 image, or a TIFF/.npy file
+holding one) and ``dead_columns=`` mark detector pixels whose values are not
+to be trusted (NaN, Inf, stuck); before any check they are replaced in the
+projections, flats and darks by linear interpolation along their row from the
+nearest good pixels (:func:`pdvc.io.fill_bad_pixels`). NaN/Inf anywhere else
+is an error that names the views, pixels, and the dead rows/columns they form.
 """
 
 from __future__ import annotations
@@ -45,6 +66,7 @@ from ..errors import InputTypeError, PdvcError, ShapeError
 __all__ = [
     "RawScan",
     "read_projections",
+    "classify_values",
     "DataError",
     "InputFileError",
     "FormatError",
@@ -62,6 +84,9 @@ _GLOB_MAGIC = re.compile(r"[*?\[]")
 _KEY_PROJECTION, _KEY_FLAT, _KEY_DARK, _KEY_INVALID = 0, 1, 2, 3
 # ``image_key_control`` (ESRF nxtomo) also uses -1 for alignment frames.
 _KEY_ALIGNMENT = -1
+
+_KINDS = ("counts", "transmission", "line_integrals")
+_KIND_WORDS = {"counts": "raw counts", "transmission": "transmission (I/I0)", "line_integrals": "line integrals"}
 
 _DEGREE_UNITS = {"deg", "degree", "degrees", "°"}
 _RADIAN_UNITS = {"rad", "radian", "radians"}
@@ -90,6 +115,58 @@ def _first_bad(arr: np.ndarray) -> tuple[int, int]:
     return n_bad, first
 
 
+def _listed(values, n_max: int = 8) -> str:
+    vals = [str(int(v)) for v in values]
+    return ", ".join(vals[:n_max]) + (f", ... ({len(vals)} in all)" if len(vals) > n_max else "")
+
+
+def _nonfinite_error(arr: np.ndarray, name: str, unit: str) -> DataError | None:
+    """A DataError naming where the NaN/Inf of a ``(n, n_rows, n_cols)`` stack are, or None when all finite.
+
+    The message keeps the historical head (``"<name> must be finite; it holds N NaN/Inf values, the first
+    in <unit> K"``) and adds the frames, the first pixels ``(frame, row, col)``, the dead columns and rows
+    (non-finite in at least half of their pixels over all frames) and how to mask them.
+    """
+    bad = ~np.isfinite(arr)
+    n_bad = int(np.count_nonzero(bad))
+    if not n_bad:
+        return None
+    n, nr, nc = bad.shape
+    frames = np.flatnonzero(bad.reshape(n, -1).any(axis=1))
+    pixels = []
+    for k in frames[:5]:
+        for r, c in np.argwhere(bad[k])[: 5 - len(pixels)]:
+            pixels.append(f"({int(k)}, {int(r)}, {int(c)})")
+        if len(pixels) >= 5:
+            break
+    per_col = bad.sum(axis=(0, 1))  # over frames and rows
+    per_row = bad.sum(axis=(0, 2))
+    dead_cols = np.flatnonzero(per_col >= 0.5 * n * nr)
+    dead_rows = np.flatnonzero(per_row >= 0.5 * n * nc) if nc > 1 else np.array([], dtype=int)
+    always = int(np.count_nonzero(bad.all(axis=0)))
+    parts = [
+        f"{name} must be finite; it holds {n_bad} NaN/Inf values, the first in {unit} {int(frames[0])}",
+        f"{len(frames)} of {n} {unit}s hold some ({_listed(frames)})",
+        f"first at ({unit}, row, col) {', '.join(pixels)}",
+    ]
+    if dead_cols.size:
+        counts = ", ".join(f"{int(c)} ({int(per_col[c])} of {n * nr})" for c in dead_cols[:8])
+        parts.append(f"dead columns (non-finite in at least half of their pixels over all {unit}s): {counts}"
+                     + (f", ... ({dead_cols.size} in all)" if dead_cols.size > 8 else ""))
+    if dead_rows.size:
+        counts = ", ".join(f"{int(r)} ({int(per_row[r])} of {n * nc})" for r in dead_rows[:8])
+        parts.append(f"dead rows: {counts}" + (f", ... ({dead_rows.size} in all)" if dead_rows.size > 8 else ""))
+    if always:
+        parts.append(f"{always} detector pixels are non-finite in every {unit}")
+    hint = (
+        "mark the bad pixels (read_projections(bad_pixels=..., dead_columns=...), or in the config "
+        '[preprocess] mask = "mask.npy" (a detector-shaped 0/1 image, 1 = bad)'
+        + (f" or dead_columns = [{_listed(dead_cols, 20)}]" if dead_cols.size else " or dead_columns = [...]")
+        + "): they are then interpolated along the row from good neighbours"
+    )
+    return DataError("; ".join(parts) + ". To use the rest, " + hint)
+
+
 def _check_frames(arr, name: str, det_shape: tuple[int, int], what: str) -> np.ndarray:
     arr = np.asarray(arr, dtype=np.float32)
     if arr.ndim != 3 or arr.shape[0] < 1 or tuple(arr.shape[1:]) != det_shape:
@@ -97,10 +174,109 @@ def _check_frames(arr, name: str, det_shape: tuple[int, int], what: str) -> np.n
             f"{name} must have shape (n_{what}, {det_shape[0]}, {det_shape[1]}) with n_{what} >= 1 "
             f"to match the detector of data, got {arr.shape}"
         )
-    n_bad, first = _first_bad(arr)
-    if n_bad:
-        raise DataError(f"{name} must be finite; it holds {n_bad} NaN/Inf values, the first in frame {first}")
+    err = _nonfinite_error(arr, name, "frame")
+    if err is not None:
+        raise err
     return arr
+
+
+# --------------------------------------------------------------------------- what the values are
+
+
+def _value_sample(arr: np.ndarray, max_views: int = 64, max_rows: int = 64, max_cols: int = 512) -> np.ndarray:
+    """Finite values of an evenly strided subset of a (n_views, n_rows, n_cols) stack, float64, flat."""
+    a = np.asarray(arr)
+    if a.ndim == 3:
+        idx = [np.unique(np.linspace(0, n - 1, min(n, m)).round().astype(np.int64))
+               for n, m in zip(a.shape, (max_views, max_rows, max_cols))]
+        a = a[np.ix_(*idx)]
+    s = np.asarray(a, dtype=np.float64).reshape(-1)
+    if s.size > 2_000_000:
+        s = s[:: s.size // 2_000_000 + 1]
+    return s[np.isfinite(s)]
+
+
+def _most_common(s: np.ndarray, lo: float, hi: float, bins: int = 64) -> float:
+    """The most common value of ``s`` within [lo, hi]: peak of a lightly smoothed histogram."""
+    if not hi > lo:
+        return float(lo)
+    h, edges = np.histogram(s, bins=bins, range=(lo, hi))
+    hs = np.convolve(h.astype(np.float64), np.array([1.0, 2.0, 3.0, 2.0, 1.0]) / 9.0, mode="same")
+    m = int(np.argmax(hs))
+    return float(0.5 * (edges[m] + edges[m + 1]))
+
+
+# Thresholds of classify_values (see its docstring).
+_COUNTS_P99 = 20.0          # a line integral of 20 is a transmission of 2e-9: nothing measures that
+_TRANSMISSION_LO = -0.05    # 0.5th percentile of a transmission: >= 0 up to noise in opaque parts
+_TRANSMISSION_HI = 1.15     # 99.5th percentile: the air level (<= 1) plus a few noise std
+
+
+def classify_values(values) -> tuple[str, str]:
+    """What a stack of projection values looks like: raw counts, transmission or line integrals.
+
+    Parameters
+    ----------
+    values : array
+        The projections as read, ``(n_views, n_rows, n_cols)`` (any shape is
+        accepted). NaN/Inf are ignored. Large stacks are subsampled (at most
+        64 views x 64 rows x 512 columns, evenly spaced).
+
+    Returns
+    -------
+    kind : {"counts", "transmission", "line_integrals"}
+    reason : str
+        One sentence with the figures that decided.
+
+    Notes
+    -----
+    Only percentiles and the most common level are used, never the minimum
+    or maximum (dead pixels, zingers and clipped values exist). With ``lo``,
+    ``hi`` the 0.5th and 99.5th percentiles and ``air`` the most common
+    value in ``[lo, hi]`` (the peak of a 64-bin histogram; in a scan the
+    rays that miss the sample are the most common level):
+
+    * **counts**: an integer dtype, or a 99th percentile above 20 (values
+      much larger than 1; a line integral of 20 is a transmission of 2e-9);
+    * **transmission** (``I/I0``): ``lo >= -0.05``, ``hi <= 1.15`` (values
+      in (0, ~1.05] up to noise), ``air > 0.05`` and ``air`` at the top of
+      the range (``hi - air <= (hi - lo) / 4``): most of the image sits at
+      one air level <= 1 and the sample is darker;
+    * **line integrals** otherwise: air near 0 at the bottom of the range,
+      the sample larger.
+
+    The case it cannot tell apart is a scan without air whose projections
+    are weak line integrals, all in (0, 1], with their most common value at
+    the top of their range; set ``is_raw`` explicitly there.
+
+    Examples
+    --------
+    >>> classify_values(np.full((2, 4, 4), 0.7))[0]          # doctest: +SKIP
+    'transmission'
+    """
+    arr = np.asarray(values)
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise InputTypeError(f"values must be a real numeric array, got dtype {arr.dtype}")
+    if np.issubdtype(arr.dtype, np.integer) or arr.dtype == np.bool_:
+        return "counts", f"integer data ({arr.dtype})"
+    s = _value_sample(arr)
+    if s.size == 0:
+        raise DataError("values hold no finite number: cannot tell what they are")
+    lo, p1, med, p99, hi = (float(v) for v in np.percentile(s, [0.5, 1.0, 50.0, 99.0, 99.5]))
+    if p99 > _COUNTS_P99:
+        return "counts", (
+            f"values much larger than 1 (median {med:.4g}, 99th percentile {p99:.4g}): detector counts"
+        )
+    air = _most_common(s, lo, hi)
+    span = f"0.5-99.5th percentiles {lo:.3g} .. {hi:.3g}, most common level {air:.3g}"
+    if lo >= _TRANSMISSION_LO and hi <= _TRANSMISSION_HI and air > 0.05 and (hi - air) <= 0.25 * (hi - lo):
+        return "transmission", (
+            f"values within (0, ~1.05] ({span}, at the top: the air, with the sample darker): "
+            f"flat-field-corrected transmission I/I0"
+        )
+    where = "at the bottom" if (air - lo) <= 0.25 * max(hi - lo, 1e-12) else "not at the bottom"
+    extra = "" if abs(air) <= 0.05 else f"; the most common level {air:.3g} is not near 0: check the air level"
+    return "line_integrals", f"values not those of counts or transmission ({span}, {where}){extra}: line integrals"
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,8 +286,8 @@ class RawScan:
     Parameters
     ----------
     data : (n_views, n_rows, n_cols) float32 array
-        Projections: raw detector counts when ``is_raw``, else line
-        integrals. Finite.
+        Projections as ``kind`` says: raw detector counts, transmission
+        ``I/I0`` or line integrals. Finite.
     flats : (n_flats, n_rows, n_cols) float32 array or None
         Open-beam (flat-field, "white") frames, counts.
     darks : (n_darks, n_rows, n_cols) float32 array or None
@@ -123,8 +299,9 @@ class RawScan:
         (``-0.5`` before the first view, ``n_views - 0.5`` after the last);
         ``None`` when unknown.
     is_raw : bool
-        True for counts (need :func:`pdvc.io.normalize`), False for data that
-        are already line integrals.
+        True when :func:`pdvc.io.normalize` must still take the logarithm
+        (counts or transmission), False for data that are already line
+        integrals. Default: from ``kind``, else True.
     source : str
         The path that was read (or a description for in-memory data).
     format : str
@@ -132,6 +309,11 @@ class RawScan:
         ``"npy"``, or ``"memory"`` for a scan built in code.
     metadata : dict
         What else was learnt while reading (file list, dtypes, units, ...).
+    kind : {"counts", "transmission", "line_integrals"}
+        What the values are. Default: ``"counts"`` when ``is_raw`` (or
+        ``is_raw`` not given), else ``"line_integrals"``. A ``kind`` given
+        with an ``is_raw`` that contradicts it (``is_raw`` must be False
+        exactly for line integrals) is an error.
 
     Notes
     -----
@@ -145,10 +327,11 @@ class RawScan:
     darks: np.ndarray | None = None
     angles: np.ndarray | None = None
     flat_positions: np.ndarray | None = None
-    is_raw: bool = True
+    is_raw: bool | None = None
     source: str = "<memory>"
     format: str = "memory"
     metadata: dict = field(default_factory=dict)
+    kind: str | None = None
 
     def __post_init__(self) -> None:
         data = np.asarray(self.data)
@@ -159,9 +342,9 @@ class RawScan:
             raise ShapeError(
                 f"data must have shape (n_views, n_rows, n_cols) with every size >= 1, got {data.shape}"
             )
-        n_bad, first = _first_bad(data)
-        if n_bad:
-            raise DataError(f"data must be finite; it holds {n_bad} NaN/Inf values, the first in view {first}")
+        err = _nonfinite_error(data, "data", "view")
+        if err is not None:
+            raise err
         det_shape = (int(data.shape[1]), int(data.shape[2]))
         object.__setattr__(self, "data", data)
         if self.flats is not None:
@@ -189,9 +372,21 @@ class RawScan:
             if not np.all(np.isfinite(pos)):
                 raise DataError("flat_positions must be finite")
             object.__setattr__(self, "flat_positions", pos)
-        if not isinstance(self.is_raw, (bool, np.bool_)):
+        if self.is_raw is not None and not isinstance(self.is_raw, (bool, np.bool_)):
             raise InputTypeError(f"is_raw must be a bool, got {self.is_raw!r}")
-        object.__setattr__(self, "is_raw", bool(self.is_raw))
+        kind = self.kind
+        if kind is None:
+            kind = "line_integrals" if self.is_raw is not None and not self.is_raw else "counts"
+        elif kind not in _KINDS:
+            raise InputTypeError(f"kind must be one of {_KINDS}, got {kind!r}")
+        needs_log = kind != "line_integrals"
+        if self.is_raw is not None and bool(self.is_raw) != needs_log:
+            raise InputTypeError(
+                f"is_raw={bool(self.is_raw)} contradicts kind={kind!r} (is_raw is False exactly for line "
+                f"integrals); give one of them, or both consistently"
+            )
+        object.__setattr__(self, "is_raw", needs_log)
+        object.__setattr__(self, "kind", kind)
         if self.format not in _SCAN_FORMATS:
             raise FormatError(f"format must be one of {_SCAN_FORMATS}, got {self.format!r}")
 
@@ -649,9 +844,11 @@ def read_projections(
     darks=None,
     angles=None,
     sinogram: bool = False,
-    is_raw: bool | None = None,
+    is_raw: bool | str | None = None,
     dataset: str | None = None,
     flat_positions=None,
+    bad_pixels=None,
+    dead_columns=None,
 ) -> RawScan:
     """Read projections (and flats, darks, angles) from a folder or a file.
 
@@ -682,11 +879,15 @@ def read_projections(
         ``(n_views, 1, n_cols)``, 3D ``(n_rows, n_views, n_cols)`` becomes
         ``(n_views, n_rows, n_cols)``. TIFF and ``.npy`` only; flats and darks
         are always given view-major.
-    is_raw : bool, optional
-        True if the values are counts, False if already line integrals.
-        Default: inferred (counts when the file has flats, the values are
-        integers, or Data Exchange says ``units="counts"``; else line
-        integrals) and logged; the reason is in ``metadata["is_raw_reason"]``.
+    is_raw : bool, "transmission" or "auto", optional
+        True if the values are counts, False if already line integrals,
+        ``"transmission"`` if they are flat-field-corrected intensities
+        ``I/I0`` (``-log`` is taken, no flats needed). Default (None or
+        ``"auto"``): inferred -- counts when the file has flats, the values
+        are integers, or Data Exchange says ``units="counts"``; else what
+        :func:`classify_values` makes of the values (transmission, line
+        integrals or counts) -- and logged at INFO; the kind is
+        ``RawScan.kind``, the reason ``metadata["is_raw_reason"]``.
     dataset : str, optional
         HDF5 only: the NXtomo entry group (when a file holds several), or the
         Data Exchange group / projection dataset path (e.g.
@@ -697,6 +898,16 @@ def read_projections(
         view, ``n_views - 0.5`` after the last); lets
         :func:`pdvc.io.normalize` interpolate between flats taken before and
         after. Overrides positions from an NXtomo ``image_key``.
+    bad_pixels : str, os.PathLike or array, optional
+        Bad detector pixels: a ``(n_rows, n_cols)`` boolean or 0/1 image
+        (nonzero = bad; ``(n_cols,)`` for a one-row detector), or a TIFF /
+        ``.npy`` file holding one, in the detector layout of the returned
+        views. They are replaced in the projections, flats and darks by
+        linear interpolation along the row from the nearest good pixels
+        (:func:`pdvc.io.fill_bad_pixels`) before any check, so NaN/Inf
+        there are no error. ``metadata["bad_pixels"]`` counts them.
+    dead_columns : sequence of int, optional
+        Detector columns that are bad as a whole; added to ``bad_pixels``.
 
     Returns
     -------
@@ -713,7 +924,8 @@ def read_projections(
         Wrong dimensions; flats/darks that do not match the detector; a
         number of angles that is not the number of views.
     DataError
-        NaN/Inf in the data (the message gives the count and the first view).
+        NaN/Inf in the data outside ``bad_pixels`` (the message names the
+        views, the first pixels and the dead rows/columns they form).
 
     Examples
     --------
@@ -727,8 +939,10 @@ def read_projections(
         raise InputTypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
     if not isinstance(sinogram, (bool, np.bool_)):
         raise InputTypeError(f"sinogram must be a bool, got {sinogram!r}")
-    if is_raw is not None and not isinstance(is_raw, (bool, np.bool_)):
-        raise InputTypeError(f"is_raw must be None or a bool, got {is_raw!r}")
+    if not (is_raw is None or isinstance(is_raw, (bool, np.bool_)) or (isinstance(is_raw, str) and is_raw in ("auto",) + _KINDS)):
+        raise InputTypeError(
+            f"is_raw must be None, \"auto\", a bool or one of {_KINDS} (\"transmission\": I/I0), got {is_raw!r}"
+        )
     path_str = os.fspath(path)
     detected = _detect_format(path_str) if fmt == "auto" else fmt
     if fmt in ("dxchange", "nxtomo"):
@@ -811,19 +1025,38 @@ def read_projections(
                 f"flat_positions must hold one value per flat: expected shape ({fl.shape[0]},), got {positions.shape}"
             )
 
-    if is_raw is None:
+    if bad_pixels is not None or dead_columns is not None:
+        from ._preprocess import bad_pixel_mask, fill_bad_pixels
+
+        mask, mask_desc = bad_pixel_mask(det_shape, bad_pixels, dead_columns)
+        n_masked = int(np.count_nonzero(mask))
+        if n_masked:
+            data = fill_bad_pixels(data, mask)
+            fl = None if fl is None else fill_bad_pixels(fl, mask)
+            dk = None if dk is None else fill_bad_pixels(dk, mask)
+        meta["bad_pixels"] = n_masked
+        meta["bad_pixels_source"] = mask_desc
+        log.info("%d bad detector pixels (%s) interpolated along their rows", n_masked, mask_desc)
+
+    if is_raw is None or (isinstance(is_raw, str) and is_raw == "auto"):
         if fl is not None:
-            is_raw, reason = True, "flats present"
+            kind, reason = "counts", "flats present"
         elif parts["counts"]:
-            is_raw, reason = True, "file says counts"
+            kind, reason = "counts", "file says counts"
         elif integer_input:
-            is_raw, reason = True, f"integer data ({meta['raw_dtype']})"
+            kind, reason = "counts", f"integer data ({meta['raw_dtype']})"
         else:
-            is_raw, reason = False, "float data without flats: taken as line integrals"
-        log.info("is_raw inferred as %s (%s); pass is_raw= to override", is_raw, reason)
+            kind, why = classify_values(data)
+            reason = f"float data without flats: {why}"
+        log.info("data taken as %s (%s); pass is_raw= to override", _KIND_WORDS[kind], reason)
     else:
-        reason = "given"
+        if isinstance(is_raw, str):
+            kind = is_raw
+        else:
+            kind = "counts" if is_raw else "line_integrals"
+        reason = f"given (is_raw={is_raw!r})"
     meta["is_raw_reason"] = reason
+    meta["data_kind"] = kind
     meta["angles_source"] = ang_desc
     meta["flats_source"] = fl_desc
     meta["darks_source"] = dk_desc
@@ -834,10 +1067,10 @@ def read_projections(
         darks=dk,
         angles=ang,
         flat_positions=positions,
-        is_raw=bool(is_raw),
         source=path_str,
         format=out_fmt,
         metadata=meta,
+        kind=kind,
     )
     log.info(
         "read %s (%s): %d views of %d x %d, %s, %s flats, %s darks, angles %s",
@@ -846,7 +1079,7 @@ def read_projections(
         n_views,
         det_shape[0],
         det_shape[1],
-        "counts" if scan.is_raw else "line integrals",
+        _KIND_WORDS[scan.kind],
         0 if fl is None else fl.shape[0],
         0 if dk is None else dk.shape[0],
         ang_desc or "none",
