@@ -21,8 +21,16 @@ Printed figures (one run each after a small warm-up that compiles the kernels):
 * memory: the peak of numpy/Python allocations (``tracemalloc``) during each
   step, and the process's peak resident size.
 
+Yardstick (issue #13): the fixed reference forward projector of
+``benchmarks/_reference.py`` is timed on the same volume and geometry, in
+alternation with ``--repeats`` extra reduce passes (on ``--ref-views`` views
+spread over the orbit, 0 for all, its time scaled to all views); the final
+table gives every step's time over the reference's.  ``--size N`` scales
+every axis of the problem by N/256 (volume N^3, detector N x 1.5N).
+
     python benchmarks/bench_engine.py              # 180 views (a few minutes on 2 cores)
     python benchmarks/bench_engine.py --views 36   # quick look
+    python benchmarks/bench_engine.py --size 128   # half resolution in every axis
 """
 
 from __future__ import annotations
@@ -57,9 +65,15 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--modes", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="reduce passes timed in alternation with the reference")
+    ap.add_argument("--ref-views", type=int, default=36, help="views the reference runs on (0: all)")
     args = ap.parse_args()
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from _reference import Yardstick, alternate, pin_threads, print_table
+
+    pin_threads(args.threads)
 
     import numpy as np
 
@@ -73,10 +87,12 @@ def main() -> None:
     vg = pdvc.VolumeGeometry((n, n, n), voxel_size=256 / n)
     full = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     angles = full if args.views >= 360 else full[:: max(1, 360 // args.views)][: args.views]
-    geom = pdvc.circular_cone(angles, sod=1000.0, odd=500.0, det_shape=(256, 384), pixel=1.5)
+    det = (n, 3 * n // 2)
+    geom = pdvc.circular_cone(angles, sod=1000.0, odd=500.0, det_shape=det, pixel=1.5 * 256 / n)
     nv = geom.n_views
-    print(f"standard problem: volume {n}^3, {nv} views, detector 256x384, {os.environ['NUMBA_NUM_THREADS']} threads")
-    print(f"  volume {vg.n_voxels * 4 / 2**20:.0f} MiB, projections {nv * 256 * 384 * 4 / 2**20:.0f} MiB")
+    title = f"problem: volume {n}^3, {nv} views, detector {det[0]}x{det[1]}, {os.environ['NUMBA_NUM_THREADS']} threads"
+    print(title)
+    print(f"  volume {vg.n_voxels * 4 / 2**20:.0f} MiB, projections {nv * det[0] * det[1] * 4 / 2**20:.0f} MiB")
 
     rng = np.random.default_rng(0)
     vol = rng.random(vg.shape, dtype=np.float32)
@@ -90,6 +106,7 @@ def main() -> None:
     small = slice(0, nv, max(1, nv // 6))
     reduce_views(vol, vg, geom[small], data[small])
     correlate(vol, vg, data[small], geom[small], basis="constant", max_iter=1)
+    yard = Yardstick(vol, vg, geom, args.ref_views)
 
     tracemalloc.start()
     base_rss = _rss_mib()
@@ -122,6 +139,20 @@ def main() -> None:
         f"SNR per mode {[round(float(s), 2) for _, _, s in pgd.mode_table]} dB, {pgd.message}"
     )
     print(f"process peak RSS {_rss_mib():.0f} MiB (before the timed steps {base_rss:.0f} MiB)")
+    tracemalloc.stop()
+    # the yardstick, in alternation with more reduce passes (after all the timed steps,
+    # so that their memory figures are unchanged)
+    timed = alternate(lambda: reduce_views(vol, vg, geom, data), yard, args.repeats, warmup=False)
+    ref = float(np.median(timed["reference"]))
+    red_med = float(np.median(timed["pdvc"] + [results[0][1]]))
+    rows = [(f"reduce pass (median of {args.repeats + 1})", red_med, ref)]
+    rows += [(label, dt, ref) for label, dt, _ in results[1:]]
+    rows.insert(5, ("one Gauss-Newton iteration", gn, ref))
+    print_table(
+        f"{title}; bench_engine.py; reference: median of {args.repeats} runs alternating with reduce passes",
+        rows,
+        note=yard.describe(),
+    )
     if nv != 360:
         f = 360 / nv
         print(

@@ -18,8 +18,9 @@ the outer voxel centres, so projections are continuous in the geometry even
 when the volume's border is not empty (a sample taller than the field of
 view).  Every sample sits exactly on a grid plane, so each ray needs 4
 gathers per plane and no more than ``n_a`` samples.  Samples whose four
-neighbours are all inside the grid take a fast path; the few at the border
-take a checked one.
+neighbours are all inside the grid take a fast path (incremental, branch-free,
+unsigned offsets so that numba adds no negative-index wrap-around to the
+gathers and scatters); the few at the border take a checked one.
 
 Exact Jacobian
 --------------
@@ -54,7 +55,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, uint64
 
 # Layout of the per-view geometry table (index coordinates, xyz order):
 #  0:3  source (cone) or ray direction (parallel)
@@ -134,6 +135,11 @@ def _clip(sa, sb, sc, da, rb, rc, na, nb, nc, cone):
         else:
             hi = min(hi, sa)
     ilo, ihi = _range(sa, sb, sc, da, rb, rc, lo, hi, -1.0, float(nb), -1.0, float(nc))
+    if nb < 2 or nc < 2:
+        # a grid one voxel thick in-plane has no cell with four neighbours
+        # inside: every sample takes the checked path (VolumeGeometry asks
+        # for >= 2 voxels per axis; the unsigned interior gathers rely on it)
+        return ilo, ihi, 0, -1
     jlo, jhi = _range(sa, sb, sc, da, rb, rc, lo, hi, 0.0, nb - 1.0, 0.0, nc - 1.0)
     return ilo, ihi, jlo, jhi
 
@@ -158,8 +164,12 @@ def _cell_pad(p, n):
 def _corners(vf, o, ib, ic, stb, stc, nb, nc, interior):
     """The four neighbours f00, f10 (b+1), f01 (c+1), f11 of a sample; zero outside."""
     if interior:
-        oo = o + ib * stb + ic * stc
-        return vf[oo], vf[oo + stb], vf[oo + stc], vf[oo + stb + stc]
+        # unsigned offsets: all four are inside the array, and numba then
+        # drops the negative-index wrap-around of every gather
+        ub = uint64(stb)
+        uc = uint64(stc)
+        oo = uint64(o) + uint64(ib) * ub + uint64(ic) * uc
+        return vf[oo], vf[oo + ub], vf[oo + uc], vf[oo + ub + uc]
     b0 = ib >= 0
     b1 = ib + 1 <= nb - 1
     c0 = ic >= 0
@@ -230,26 +240,33 @@ def _line_integral(vf, sx, sy, sz, dx, dy, dz, nx, ny, nz, spx, spy, spz, cone):
         ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
         f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, False)
         acc += (1.0 - wc) * (f00 + wb * (f10 - f00)) + wc * (f01 + wb * (f11 - f01))
-    # interior: all four neighbours inside, incremental and branch-free
+    # interior: all four neighbours inside, incremental and branch-free.
+    # Offsets are unsigned (uint64 throughout: numba would turn a mixed
+    # int64/uint64 sum into a float): every gather is inside the array, and
+    # signed indices made numba add a negative-index wrap-around to each of
+    # the four loads, a quarter of the loop's time (issue #13).
     nb2 = nb - 2
     nc2 = nc - 2
     pb = sb + (jlo - sa) * rb
     pc = sc + (jlo - sa) * rc
-    o = jlo * sta
+    ustb = uint64(stb)
+    ustc = uint64(stc)
+    usta = uint64(sta)
+    o = uint64(max(jlo, 0)) * usta
     for i in range(jlo, jhi + 1):
         ib = min(int(pb), nb2)  # int() truncates: pb >= -eps gives 0
         ic = min(int(pc), nc2)
         wb = pb - ib
         wc = pc - ic
-        oo = o + ib * stb + ic * stc
+        oo = o + uint64(ib) * ustb + uint64(ic) * ustc
         f00 = vf[oo]
-        f10 = vf[oo + stb]
-        f01 = vf[oo + stc]
-        f11 = vf[oo + stb + stc]
+        f10 = vf[oo + ustb]
+        f01 = vf[oo + ustc]
+        f11 = vf[oo + ustb + ustc]
         acc += (1.0 - wc) * (f00 + wb * (f10 - f00)) + wc * (f01 + wb * (f11 - f01))
         pb += rb
         pc += rc
-        o += sta
+        o += usta
     for i in range(max(jhi + 1, ilo), ihi + 1):
         ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
         f00, f10, f01, f11 = _corners(vf, i * sta, ib, ic, stb, stc, nb, nc, False)
@@ -396,22 +413,28 @@ def adjoint_kernel(proj, shape_xyz, spacing_xyz, geo, cone, slab_edges, out):
                     nc2 = nc - 2
                     pb = sb + (flo - sa) * rb
                     pc = sc + (flo - sa) * rc
-                    o = flo * sta - base
+                    # unsigned offsets, as in the forward: o may be "negative"
+                    # (flo * sta < base), but the uint64 sums wrap modulo 2^64
+                    # to the true offset of an owned target, which is >= 0
+                    ustb = uint64(stb)
+                    ustc = uint64(stc)
+                    usta = uint64(sta)
+                    o = uint64(max(flo, 0) * sta - base)
                     for i in range(flo, fhi + 1):
                         ib = min(int(pb), nb2)
                         ic = min(int(pc), nc2)
                         wb = pb - ib
                         wc = pc - ic
-                        oo = o + ib * stb + ic * stc
+                        oo = o + uint64(ib) * ustb + uint64(ic) * ustc
                         wv = w * (1.0 - wc)
                         buf[oo] += wv * (1.0 - wb)
-                        buf[oo + stb] += wv * wb
+                        buf[oo + ustb] += wv * wb
                         wv = w * wc
-                        buf[oo + stc] += wv * (1.0 - wb)
-                        buf[oo + stb + stc] += wv * wb
+                        buf[oo + ustc] += wv * (1.0 - wb)
+                        buf[oo + ustb + ustc] += wv * wb
                         pb += rb
                         pc += rc
-                        o += sta
+                        o += usta
                     for i in range(max(fhi + 1, ilo), ihi + 1):
                         ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
                         _scatter_checked(buf, i * sta - base, ib, wb, ic, wc, w, stb, stc, nb, nc, own_lo, own_hi)
