@@ -407,6 +407,14 @@ def table(rows: list) -> list:
     return out
 
 
+def _toml_value(text: str):
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover
+        import tomli as tomllib
+    return tomllib.loads(f"v = {text}")["v"]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     size = ap.add_mutually_exclusive_group()
@@ -420,7 +428,12 @@ def main(argv=None) -> int:
     ap.add_argument("--csv", default=None, help="write the per-case rows to this CSV file")
     ap.add_argument("--threads", type=int, default=2, help="numba threads (default 2)")
     ap.add_argument("--verbose", action="store_true", help="show pdvc's log")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)
+    for item in args.option:
+        key, _, value = item.partition("=")
+        OPTIONS[key.strip()] = _toml_value(value)
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR, format="  %(name)s: %(message)s")

@@ -239,7 +239,10 @@ _RECIPE_MODEL = {
 _RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
 
 
-def recipe_stages(recipe: str = "default", det_shape=None, *, scales="auto", max_outer: Optional[int] = None, warmup: int = 1, **model) -> tuple:
+def recipe_stages(
+    recipe: str = "default", det_shape=None, *, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
+    warmup_basis: str = "drift", **model,
+) -> tuple:
     """The stage list of a named recipe.
 
     Parameters
@@ -258,8 +261,13 @@ def recipe_stages(recipe: str = "default", det_shape=None, *, scales="auto", max
         Rounds per scale, warm-up included (recipe default: 10, 8 for
         ``precession`` and ``jolts``).
     warmup : int
-        Translation-only rounds (lab frame, ``drift`` basis) before the
-        model at each scale, when the model frees a rotation (0: none).
+        Translation-only rounds before the model at each scale, when the
+        model frees a rotation (0: none).
+    warmup_basis : {"drift", "model"}
+        The warm-up's translation model: ``"drift"``, the lab-frame
+        {1, t, t², cos θ, sin θ}; ``"model"``, the model stage's own basis
+        and frame (so that the model can take back anything the warm-up
+        measured).
     **model
         Overrides of the model stage's fields (``basis``, ``frame``,
         ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
@@ -283,6 +291,8 @@ def recipe_stages(recipe: str = "default", det_shape=None, *, scales="auto", max
         raise StageError(f"max_outer must be a positive int, got {max_outer!r}")
     if not isinstance(warmup, (int, np.integer)) or isinstance(warmup, bool) or warmup < 0:
         raise StageError(f"warmup must be an int >= 0, got {warmup!r}")
+    if warmup_basis not in ("drift", "model"):
+        raise StageError(f"warmup_basis must be 'drift' or 'model', got {warmup_basis!r}")
     fields = {f.name for f in dataclasses.fields(Stage)} - {"name", "scale", "rounds"}
     unknown = sorted(set(model) - fields)
     if unknown:
@@ -294,18 +304,23 @@ def recipe_stages(recipe: str = "default", det_shape=None, *, scales="auto", max
     for s in sched:
         n_warm = min(warmup, n_outer - 1) if base.frees_rotation else 0
         if n_warm:
-            stages.append(warmup_stage(base, scale=s, rounds=n_warm))
+            stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
         stages.append(base.replace(scale=s, rounds=n_outer - n_warm))
     return tuple(stages)
 
 
-def warmup_stage(model: Stage, *, scale: int, rounds: int = 1) -> Stage:
+def warmup_stage(model: Stage, *, scale: int, rounds: int = 1, basis: str = "drift") -> Stage:
     """Translations first: the lab-frame ``drift`` model that precedes a model with free rotations.
 
     The first reconstructions are blurred by the motion; rotations measured
     against them are noise (``docs/method.md``). In the lab frame it also
     holds the translations the model fixes.
     """
+    if basis == "model":
+        fixed = _ROTATIONS + tuple(x for x in model.fixed if x not in _ROTATIONS)
+        return model.replace(
+            name="warmup", fixed=fixed, method="full", scale=scale, rounds=rounds, until="rounds", guards=(), stall_ratio=None,
+        )
     fixed = _ROTATIONS + (tuple(x for x in model.fixed if x not in _ROTATIONS) if model.frame == "lab" else ())
     return model.replace(
         name="warmup", basis="drift", frame="lab", fixed=fixed, method="full", scale=scale, rounds=rounds,
