@@ -40,3 +40,14 @@ def test_zero_weight_pixels_are_left_out():
     w[:, 5] = 0
     r[:, :, 5] = 1e3  # a dead column, masked
     assert diagnose_residual(r, 1.0, w).chi == pytest.approx(1.0, abs=0.05)
+
+
+def test_the_edges_of_a_misplaced_sample_are_structure_not_outliers():
+    rng = np.random.default_rng(3)
+    cols = np.arange(60)
+    disc = lambda c0: (np.abs(cols - c0) < 15).astype(float) * 5.0  # noqa: E731
+    # the sample's edges move across the detector from view to view (a rotating, misplaced sample)
+    r = np.stack([np.broadcast_to(disc(20.0 + k) - disc(19.0 + k), (12, 60)) for k in range(20)])
+    r = r + rng.normal(0, 0.1, r.shape)
+    d = diagnose_residual(r, 0.01)
+    assert d.outliers < 0.01

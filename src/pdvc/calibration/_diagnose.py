@@ -34,6 +34,9 @@ class ResidualDiagnosis:
         A pattern of the detector rows that stays over views and columns.
     outliers : float
         Isolated pixels beyond 6 robust standard deviations (zingers, hot or dead pixels).
+        A residual dominated by motion (the nominal geometry of a misaligned
+        scan) puts its edges in ``structure`` and, for a constant offset of
+        the axis, in ``column_pattern``: read the parts after calibration.
     noise : float
         What γ² accounts for.
     structure : float
@@ -67,7 +70,9 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
 
     The parts are taken one after the other from what is left: the mean of
     each view, then the mean of each column over views and rows, then of
-    each row, then the pixels beyond 6 robust σ (1.4826 MAD); the noise is
+    each row, then the isolated pixels beyond 6 robust σ (1.4826 MAD; no
+    4-neighbour beyond 3σ: a zinger is alone, the edge of a misplaced sample
+    is a line); the noise is
     ``n γ²`` (capped at what is left), the structure the rest. Pixels with
     zero weight are left out.
     """
@@ -93,6 +98,14 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     vals = r[w]
     sigma = 1.4826 * float(np.median(np.abs(vals - np.median(vals)))) if vals.size else 0.0
     out = w & (np.abs(r) > 6 * sigma) if sigma > 0 else np.zeros(r.shape, bool)
+    if out.any():  # isolated: no neighbour in the row or the column beyond 3 sigma (edges of a misplaced sample are lines)
+        big = np.abs(r) > 3 * sigma
+        nb = np.zeros(r.shape, bool)
+        nb[:, 1:, :] |= big[:, :-1, :]
+        nb[:, :-1, :] |= big[:, 1:, :]
+        nb[:, :, 1:] |= big[:, :, :-1]
+        nb[:, :, :-1] |= big[:, :, 1:]
+        out &= ~nb
     e_out = float(np.sum(r[out] ** 2))
     rest = max(total - e_view - e_col - e_row - e_out, 0.0)
     e_noise = min(n_w * float(noise_variance), rest)

@@ -113,7 +113,7 @@ class Stage:
     guards: tuple = ("consistency",)
     diverge_tol: float = 0.005
     entropy_tol: float = 0.003
-    max_iter: int = 30
+    max_iter: int = 10
     max_modes: int = 5
     pgd_passes: int = 5
     min_gain: float = 0.01

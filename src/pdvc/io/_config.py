@@ -101,7 +101,7 @@ that type needs) are required; everything else has the default shown.
     # guards = ["consistency"]  # "consistency" (stop if a fresh reconstruction fits worse) | "entropy"
     # max_outer = 10            # rounds per scale, warm-up included (precession, jolts: 8)
     # tol_px = 0.01             # a round moving sample points by less ends the stage (full-resolution px)
-    # max_iter = 30             # Jacobian passes per correlation
+    # max_iter = 10             # Jacobian passes per correlation (per round)
     # max_modes = 5             # PGD: modes at most
     # pgd_passes = 5            # PGD: alternating passes per mode
     # min_gain = 0.01           # PGD: stop when a mode lowers chi by less than this fraction
