@@ -258,3 +258,19 @@ def test_cli_exit_code_says_a_calibration_did_not_succeed(simulated, tmp_path, m
     assert run["status"] == "complete" and run["success"] is False and run["status_name"] == "worse_than_nominal"
     assert (tmp_path / "o" / "geometry.npy").is_file() and (tmp_path / "o" / "report.html").is_file()
     assert "did not succeed" in capsys.readouterr().err
+
+
+def test_binned_calibration_writes_the_geometry_for_the_full_detector(simulated, tmp_path):
+    # the poses do not depend on the pixel size: calibrated on a 2x2-binned copy, they are applied
+    # to the unbinned nominal geometry; that geometry binned is the calibrated one of the binned run
+    text = (simulated / "config.toml").read_text().replace('path = "projections.npy"', f'path = "{simulated / "projections.npy"}"')
+    text += "\n[preprocess]\nbin = 2\n\n[calibration]\nmax_outer = 2\nscales = [1]\noversample = 1\n"
+    (tmp_path / "c.toml").write_text(text)
+    out = tmp_path / "o"
+    assert main(["-q", "calibrate", str(tmp_path / "c.toml"), "--out", str(out)]) in (0, 3)
+    full = np.load(out / "geometry_full_resolution.npy")
+    binned = np.load(out / "geometry.npy")
+    proj = np.load(simulated / "projections.npy")
+    g_full = pdvc.VectorGeometry(full, proj.shape[1:], "cone")
+    np.testing.assert_allclose(g_full.binned(2).vectors, binned, rtol=1e-9, atol=1e-9)
+    assert not np.allclose(full, np.load(simulated / "geometry_nominal.npy"))

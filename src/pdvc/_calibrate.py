@@ -22,6 +22,7 @@ def calibrate(
     resume: bool = False,
     config=None,
     save_initial_volume: bool = True,
+    full_resolution_geometry=None,
     **options,
 ) -> CalibrationResult:
     """Calibrate a scan from its own projections; write the outputs if ``out_dir``.
@@ -44,6 +45,11 @@ def calibrate(
         Continue an interrupted run from the checkpoint in ``out_dir``.
     config : Config or dict, optional
         The resolved configuration, written as ``config.toml``.
+    full_resolution_geometry : VectorGeometry, optional
+        The nominal geometry of the detector before binning, when the
+        projections given are a binned copy: the poses found (which do not
+        depend on the pixel size) are applied to it and written as
+        ``geometry_full_resolution.npy``, for the full-size reconstruction.
     **options
         Passed to :func:`pdvc.calibration.calibrate` (recipe, stages, scales,
         max_outer, basis, method, frame, fixed, init, weights, ...).
@@ -77,7 +83,10 @@ def calibrate(
         if resume and state is None:
             log.warning("no checkpoint in %s: starting from the beginning", writer.out)
         res = _calibrate(projections, geom, vol_geom, checkpoint=writer.save_checkpoint, resume=state, **options)
-        writer.write(res, projections=projections, config=config, save_initial_volume=save_initial_volume)
+        writer.write(
+            res, projections=projections, config=config, save_initial_volume=save_initial_volume,
+            full_resolution_geometry=full_resolution_geometry,
+        )
     finally:
         root.removeHandler(handler)
         root.setLevel(old_level)

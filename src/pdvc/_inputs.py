@@ -41,6 +41,7 @@ class Scan:
     raw: object
     problems: tuple = ()  # what the inputs look wrong in (air level off 0, values unlike is_raw says)
     air: object = None  # the pdvc.io.AirEstimate of the line integrals (before any subtraction)
+    geometry_unbinned: Optional[VectorGeometry] = None  # the detector before [preprocess] bin (None when bin = 1)
 
 
 def calibration_options(cal, det_shape) -> dict:
@@ -194,9 +195,11 @@ def load_scan(config, *, out_dir=None) -> Scan:
     if pp.roi_rows is not None or pp.roi_cols is not None:
         p, geom = detector_roi(p, geom, rows=pp.roi_rows, cols=pp.roi_cols)
         notes.append(f"detector ROI rows {pp.roi_rows}, cols {pp.roi_cols}: {p.shape[1]}x{p.shape[2]} px")
+    geom_unbinned = None
     if pp.bin > 1:
+        geom_unbinned = geom
         p, geom = coarse_grain(p, geom, int(pp.bin))
-        notes.append(f"binned {pp.bin}x{pp.bin} (Gaussian then block mean)")
+        notes.append(f"binned {pp.bin}x{pp.bin} (Gaussian then block mean); the geometry is also written for the full-resolution detector")
     if p.shape[1] == 1:
         # the interpolating projectors need two rows: a one-row sinogram becomes two
         # identical rows half a pixel above and below it (a slab two voxels thick)
@@ -228,6 +231,7 @@ def load_scan(config, *, out_dir=None) -> Scan:
         raw=raw,
         problems=tuple(problems),
         air=air,
+        geometry_unbinned=geom_unbinned,
     )
 
 

@@ -121,6 +121,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         resume=args.resume,
         config=cfg,
         save_initial_volume=cfg.output.save_initial_volume,
+        full_resolution_geometry=scan.geometry_unbinned,
         progress=_Progress(quiet=args.quiet),
         weights=scan.weights,
         **scan.calibration_options,

@@ -7,6 +7,7 @@ Ctrl-C, never sees a half-written file)::
     checkpoint.npz         poses + history after every outer iteration (for --resume)
     geometry.npy           calibrated per-view vectors (n_views, 12), DESIGN.md convention
     geometry_nominal.npy   the nominal ones
+    geometry_full_resolution.npy  the calibrated vectors of the unbinned detector (when the data were binned)
     geometry_astra.json, geometry_tigre.json, geometry_leap.json, geometry_cil.json
     motion.csv             per view: poses (sample and lab frames), SNR before/after, std
     result.h5              everything (options, poses, histories, modes, SNR, motion summary)
@@ -54,6 +55,7 @@ OWNED_OUTPUTS = (
     "pdvc.log",
     "geometry.npy",
     "geometry_nominal.npy",
+    "geometry_full_resolution.npy",
     "geometry_astra.json",
     "geometry_tigre.json",
     "geometry_leap.json",
@@ -204,8 +206,12 @@ class OutputWriter:
             )
 
     # -- final outputs ---------------------------------------------------------
-    def write(self, result, *, projections, config=None, save_initial_volume=True) -> None:
-        """Every output of ``result`` (a CalibrationResult); ``run.json`` last, with the status."""
+    def write(self, result, *, projections, config=None, save_initial_volume=True, full_resolution_geometry=None) -> None:
+        """Every output of ``result`` (a CalibrationResult); ``run.json`` last, with the status.
+
+        ``full_resolution_geometry``: the nominal geometry of the unbinned
+        detector; the poses applied to it go to ``geometry_full_resolution.npy``.
+        """
         from ._tables import write_motion_csv, write_result_h5
 
         out = self.out
@@ -214,6 +220,8 @@ class OutputWriter:
         vol_format = getattr(oc, "volume_format", "tiff")
         atomic_write_npy(out / "geometry.npy", result.geometry.vectors)
         atomic_write_npy(out / "geometry_nominal.npy", result.nominal.vectors)
+        if full_resolution_geometry is not None:
+            atomic_write_npy(out / "geometry_full_resolution.npy", full_resolution_geometry.apply(result.poses).vectors)
         if want("exports"):
             from ..io import write_exports
 
