@@ -199,3 +199,28 @@ def test_the_report_describes_the_poses_kept_after_a_rollback(small, tmp_path):
         np.testing.assert_allclose(f["assessment/std_sample"][()], res.assessment.std, equal_nan=True)
     motion = np.genfromtxt(tmp_path / "o" / "motion.csv", delimiter=",", names=True)
     np.testing.assert_allclose(motion["tx_sample"], res.poses.to_params(c.vol_geom.offset)[:, 0], atol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_good_calibration_of_a_small_drift_is_not_rejected_as_worse_than_nominal():
+    # A granular sample drifting by a fraction of a pixel (bench_accuracy's tuning seed 22). The
+    # calibration reaches 0.023 px from 0.162 px; on the user's grid (voxel = pixel) the
+    # interpolating projector still ranked it below nominal (SNR 18.11 < 18.64 dB) and the check
+    # returned the nominal geometry. Measured as the correlation measures it (the 2x grid) it is
+    # better (21.05 > 18.70 dB) and kept.
+    from pdvc.geometry import fix_gauge, reprojection_error, sample_points
+    from pdvc.simulate import drift_poses, granular_phantom, simulate_scan
+
+    n, n_views = 40, 90
+    angles = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)
+    sod = 24.0 / np.tan(np.deg2rad(2.4))
+    geom = pdvc.circular_cone(angles, sod=sod, odd=0.5 * sod, det_shape=(48, 56), pixel=1.5)
+    rv, t = drift_poses(np.linspace(0, 1, n_views), angles, velocity=[0.064, -0.052, -0.388], acceleration=[-0.13, 0.992, -0.329])
+    scan = simulate_scan(granular_phantom(0.36 * n, 0.8 * n, seed=22), geom, rotvecs=rv, translations=t, i0=2e5, seed=22, supersampling=2)
+    vg = pdvc.VolumeGeometry((n, n, n))
+    res = pdvc.calibrate(scan.projections, geom, vg)
+    assert res.status != Status.WORSE_THAN_NOMINAL and res.success, res.message
+    truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
+    pts = sample_points(vg, 5, fraction=0.6)
+    assert reprojection_error(res.geometry, truth, pts).rms < 0.5 * reprojection_error(geom, truth, pts).rms
+    assert np.mean(res.snr_after) > np.mean(res.snr_before)
