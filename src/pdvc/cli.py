@@ -52,14 +52,19 @@ class _Progress:
         elif event == "reconstruct":
             msg = f"reconstruction ({info.get('what', '')} geometry, full resolution)"
         elif event == "stage":
+            self.stage_rounds, self.round_times = int(info.get("rounds", 0)), []
             msg = (
                 f"stage {info['index'] + 1}/{info['n_stages']} '{info['name']}' at scale {info['scale']}: detector "
-                f"{info['det_shape'][0]}x{info['det_shape'][1]}, grid {'x'.join(map(str, info['volume']))}"
+                f"{info['det_shape'][0]}x{info['det_shape'][1]}, grid {'x'.join(map(str, info['volume']))}, "
+                f"{self.stage_rounds} round(s) at most"
             )
         elif event == "round":
+            self.round_times = getattr(self, "round_times", []) + [float(info.get("elapsed_s", 0.0))]
+            left = max(getattr(self, "stage_rounds", 0) - int(info.get("round", 0)) - 1, 0)
             msg = (
                 f"  {info.get('stage')} round {info.get('round')}: chi {info['chi_before']:.4g} -> {info['chi_after']:.4g}, "
-                f"increment {info['increment_px']:.3g} px ({info.get('elapsed_s', 0.0):.1f} s)"
+                f"increment {info['increment_px']:.3g} px ({self.round_times[-1]:.1f} s"
+                + (f"; at most ~{left * np.mean(self.round_times):.0f} s left in this stage)" if left else ")")
             )
         elif event == "resume":
             msg = f"resuming at stage {info.get('stage_index', 0) + 1} after {info.get('rounds')} rounds"

@@ -214,7 +214,7 @@ def run_stages(
         _, g_s, vg_s, _, _ = ctx.at_scale(stage.scale)
         if progress is not None:
             progress(dict(event="stage", index=i, n_stages=len(stages), name=stage.name, scale=stage.scale,
-                          det_shape=g_s.det_shape, volume=vg_s.shape))
+                          det_shape=g_s.det_shape, volume=vg_s.shape, rounds=stage.rounds))
         run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress)
         poses, status, res, gv = run.run(r0 if i == i0 else 0)
         kept = res if res is not None else kept
