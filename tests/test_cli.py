@@ -107,7 +107,7 @@ def test_interrupted_run_leaves_whole_files_and_resumes(simulated, tmp_path):
     res = pdvc.calibrate(proj, geom, vg, out_dir=out, resume=True, progress=seen.append, **opts)
     assert seen[0]["event"] == "resume"
     # the stages at scale 2 (warm-up and model) were not redone: the two at scale 1 ran
-    assert [(s["name"], s["scale"]) for s in seen if s.get("event") == "stage"] == [("warmup", 1), ("model", 1)]
+    assert [(s["name"], s["scale"]) for s in seen if s.get("event") == "stage"] == [("warmup", 1), ("model", 1), ("jolts", 1)]
     assert {h["scale"] for h in res.history} == {2, 1}
     assert json.loads((out / "run.json").read_text())["status"] == "complete"
 

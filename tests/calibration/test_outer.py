@@ -113,7 +113,7 @@ def test_result_structure(small_case, small_run):
     assert [h["iteration"] for h in out.history] == list(range(out.n_outer))
     assert seen == [dict(h) for h in out.history]  # the callback saw every iteration
     assert out.result.basis is not None  # the CorrelationResult whose poses were kept
-    assert [o.name for o in out.stages] == ["model"] and out.stages[0].status == out.status
+    assert [o.name for o in out.stages] == ["model", "jolts"] and out.stages[0].status == out.status
     assert "magnification" in out.gauge and "mean rotation" in out.gauge
 
 
@@ -241,7 +241,7 @@ def test_free_rotations_start_with_the_translation_warmup(small_case):
     """Rotations free (default: rz fixed only): round 0 measures translations only, in the lab frame."""
     c = small_case
     out = self_calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=2, oversample=1, tol_px=1e-9)
-    assert [h["stage"] for h in out.history] == ["warmup", "model"]
+    assert [h["stage"] for h in out.history][:2] == ["warmup", "model"]
     assert out.stages[0].status == Status.ROUNDS_DONE  # a warm-up that ran its round is done, not "not converged"
 
 

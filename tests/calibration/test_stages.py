@@ -61,14 +61,16 @@ def test_stage_round_trips_through_toml():
 def test_default_recipe_is_a_warmup_then_the_model_at_each_scale():
     stages = recipe_stages("default", (76, 89))
     assert auto_scales((76, 89)) == (1,)
-    assert [(s.name, s.scale, s.rounds) for s in stages] == [("warmup", 1, 1), ("model", 1, 9)]
-    warm, model = stages
+    assert [(s.name, s.scale, s.rounds) for s in stages] == [("warmup", 1, 1), ("model", 1, 9), ("jolts", 1, 5)]
+    warm, model, jolts = stages
+    assert jolts.basis == "jolt_steps" and jolts.until == "rounds" and set(jolts.fixed) == {"rx", "ry", "rz", "ty"}
     assert warm.basis == "drift" and warm.frame == "lab" and set(warm.fixed) == {"rx", "ry", "rz"}
     assert warm.until == "rounds" and warm.guards == ()
     assert model.basis == "fourier:1" and model.frame == "sample" and model.fixed == ("rz",)
     assert model.until == "converged" and model.guards == ("consistency",)
     big = recipe_stages("default", (1024, 1024))
-    assert [s.scale for s in big] == [4, 4, 2, 2]
+    assert [s.scale for s in big] == [4, 4, 2, 2, 2]
+    assert len(recipe_stages("default", (76, 89), jolts=False)) == 2
 
 
 def test_recipes_differ_in_their_model_and_take_overrides():
@@ -78,7 +80,7 @@ def test_recipes_differ_in_their_model_and_take_overrides():
     jolts = recipe_stages("jolts", (50, 60))
     assert len(jolts) == 1 and jolts[0].basis == "dirac" and jolts[0].rounds == 8  # no free rotation: no warm-up
     mine = recipe_stages("default", (50, 60), max_outer=5, basis="spline:3", oversample=1)
-    assert [s.rounds for s in mine] == [1, 4] and mine[1].basis == "spline:3" and all(s.oversample == 1 for s in mine)
+    assert [s.rounds for s in mine] == [1, 4, 5] and mine[1].basis == "spline:3" and all(s.oversample == 1 for s in mine)
     # a lab-frame model's fixed translations are held in its warm-up too
     lab = recipe_stages("default", (50, 60), frame="lab", fixed=("rz", "ty"))
     assert set(lab[0].fixed) == {"rx", "ry", "rz", "ty"}

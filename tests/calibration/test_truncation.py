@@ -91,3 +91,17 @@ def test_a_thin_slab_is_never_vertically_truncated_and_keeps_rays():
     assert not detect_truncation(vol, vg).vertical
     geom = pdvc.parallel(np.array([0.0, 1.0]), det_shape=(2, 50), pixel=1.0)
     assert truncation_weights(geom, vg).min() == 1.0  # both rows lie inside the slab
+
+
+def test_jolt_views_finds_local_dips_not_smooth_trends():
+    from pdvc.calibration import jolt_views
+
+    rng = np.random.default_rng(0)
+    k = np.arange(120)
+    smooth = 20 + 3 * np.cos(2 * np.pi * k / 120) + 2 * np.cos(4 * np.pi * k / 120) + rng.normal(0, 0.05, 120)
+    assert jolt_views(smooth).size == 0  # an elongated sample's SNR varies with the angle: no jolt
+    dipped = smooth.copy()
+    dipped[[40, 41]] -= 2.5  # the views around a jump fit worse
+    dipped[90] -= 3.0
+    assert set(jolt_views(dipped).tolist()) == {40, 41, 90}
+    assert jolt_views(smooth[:5]).size == 0

@@ -89,6 +89,15 @@ basis = "fourier:1"
 frame = "sample"
 fixed = ["rz"]
 rounds = 11
+
+[[calibration.stage]]
+name = "jolts"
+basis = "jolt_steps"
+frame = "lab"
+fixed = ["rx", "ry", "rz", "ty"]
+until = "rounds"
+rounds = 5
+stall_ratio = 0
 """
 
 PRECESSION = """

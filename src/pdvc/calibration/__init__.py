@@ -17,7 +17,7 @@ The method and the reasons behind each default: ``docs/method.md``.
 
 from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
-from ._driver import DriverResult, StageOutcome, reconstruct, refined_grid, run_stages
+from ._driver import DriverResult, StageOutcome, jolt_views, reconstruct, refined_grid, run_stages
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
@@ -34,6 +34,7 @@ from ._stages import (
     stages_from_dicts,
     stages_to_dicts,
     warmup_stage,
+    jolt_stage,
 )
 
 __all__ = [
@@ -49,6 +50,8 @@ __all__ = [
     "auto_scales",
     "resolve_stages",
     "run_stages",
+    "jolt_views",
+    "jolt_stage",
     "DriverResult",
     "StageOutcome",
     "refined_grid",

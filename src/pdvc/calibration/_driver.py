@@ -25,15 +25,17 @@ from ..correlation import (
     coarse_noise_factor,
     coarse_weights,
     correlate,
+    custom_basis,
+    drift_basis,
     shannon_entropy,
     view_angles,
 )
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..recon import cgls, fbp, fdk, nonneg_ls
 from ..status import Status
-from ._stages import Stage, StageError
+from ._stages import JOLT_BASIS, Stage, StageError
 
-__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct"]
+__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "jolt_views"]
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -86,6 +88,31 @@ class DriverResult:
     @property
     def success(self) -> bool:
         return self.status.success
+
+
+def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0) -> np.ndarray:
+    """Views whose SNR dips below their neighbours': where a smooth model missed a jolt.
+
+    The dip of view k is the median SNR of the ``window`` views around it
+    (acquisition order) minus its own; a view stands out when its dip is
+    above ``z`` times the view-to-view scatter of the SNR (1.4826 MAD of the
+    differences between neighbours, over √2) and above ``min_drop_db``. A smooth dependence of the SNR on the angle (an
+    elongated sample) is no dip.
+    """
+    s = np.asarray(snr_per_view, float)
+    n = s.size
+    if n < window + 2:
+        return np.array([], int)
+    h = window // 2
+    padded = np.pad(s, h, mode="edge")
+    local = np.array([np.median(padded[k: k + window]) for k in range(n)])
+    dip = local - s
+    # the view-to-view scatter of the SNR (robust: 1.4826 MAD of the differences between neighbours)
+    diff = np.diff(s)
+    sigma = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)
+    if not sigma > 0:
+        return np.array([], int)
+    return np.nonzero((dip > z * sigma) & (dip > min_drop_db))[0]
 
 
 def refined_grid(vol_geom: VolumeGeometry, oversample: int) -> VolumeGeometry:
@@ -215,7 +242,7 @@ def run_stages(
         if progress is not None:
             progress(dict(event="stage", index=i, n_stages=len(stages), name=stage.name, scale=stage.scale,
                           det_shape=g_s.det_shape, volume=vg_s.shape, rounds=stage.rounds))
-        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress)
+        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept)
         poses, status, res, gv = run.run(r0 if i == i0 else 0)
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
@@ -223,7 +250,11 @@ def run_stages(
         if checkpoint is not None:
             checkpoint(dict(poses=poses, history=[dict(h) for h in history], stage_index=i + 1, rounds_done=0))
         log.info("stage %d (%s, scale %d): %s after %d round(s)", i, stage.name, stage.scale, status.message, run.n_rounds)
-    last = outcomes[-1] if outcomes else StageOutcome(stages[-1].name, stages[-1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0)
+    # the run's status is that of the last stage that had to converge (warm-ups and refinements run their rounds)
+    musts = [o for o, s in zip(outcomes, stages[i0:]) if s.until == "converged"]
+    last = musts[-1] if musts else outcomes[-1] if outcomes else StageOutcome(
+        stages[-1].name, stages[-1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0
+    )
     return DriverResult(
         poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
         correlation=kept, guard_volume=guard_volume,
@@ -233,8 +264,10 @@ def run_stages(
 class _StageRun:
     """The rounds of one stage and its stopping rules (``docs/method.md``, "Stopping")."""
 
-    def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress):
+    def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress, previous=None):
         self.ctx, self.stage, self.index = ctx, stage, index
+        self.previous = previous  # the correlation kept by the stages before (a jolt stage reads its per-view fit)
+        self.basis = stage.basis
         self.poses = poses
         self.history = history
         self.checkpoint, self.progress = checkpoint, progress
@@ -249,6 +282,19 @@ class _StageRun:
     def run(self, first_round: int):
         st = self.stage
         status = Status.ROUNDS_DONE if st.until == "rounds" else Status.MAX_ITER
+        if isinstance(st.basis, str) and st.basis == JOLT_BASIS:
+            views = jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
+            if views.size == 0:
+                log.info("stage %s: no view's fit stands out: no jolt, skipped", st.name)
+                return self.poses, status, None, None
+            n = self.ctx.geom.n_views
+            at = np.unique(np.clip(np.concatenate([views - 1, views, views + 1]), 1, n - 1))  # the jump is near the dip
+            log.info("stage %s: views %s stand out: the drift basis and a step at views %s", st.name, views.tolist(), at.tolist())
+            smooth = drift_basis(self.ctx.angles, self.ctx.times)
+            steps = (np.arange(n)[:, None] >= at[None, :]).astype(float)
+            self.basis = custom_basis(
+                np.column_stack([smooth.matrix, steps]), names=list(smooth.names) + [f"step{v}" for v in at]
+            )
         prev_poses, prev_inc, prev_kept = self.poses, None, None
         for r in range(first_round, st.rounds):
             self.t_round = time.perf_counter()
@@ -310,7 +356,7 @@ class _StageRun:
         vg_c = refined_grid(vg, st.oversample)
         vol = self.rec(p, vg_c, g.apply(self.poses))
         return correlate(
-            vol, vg_c, p, g, basis=st.basis, frame=st.frame, fixed=st.fixed, method=st.method, center=ctx.center,
+            vol, vg_c, p, g, basis=self.basis, frame=st.frame, fixed=st.fixed, method=st.method, center=ctx.center,
             weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
             max_iter=st.max_iter, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,

@@ -28,6 +28,8 @@ __all__ = [
     "RECONSTRUCTIONS",
     "GUARDS",
     "recipe_stages",
+    "jolt_stage",
+    "JOLT_BASIS",
     "auto_scales",
     "stages_to_dicts",
     "stages_from_dicts",
@@ -37,6 +39,8 @@ __all__ = [
 RECONSTRUCTIONS = ("fdk", "nonneg_ls", "cgls")
 #: Guards a stage can run before or after each round.
 GUARDS = ("consistency", "entropy")
+#: The basis of a jolt stage: a step at each view whose fit stays poor after the previous stages.
+JOLT_BASIS = "jolt_steps"
 #: The named recipes (:func:`recipe_stages`).
 RECIPES = ("default", "precession", "jolts", "axis")
 
@@ -58,6 +62,11 @@ class Stage:
     basis : str or TemporalBasis or array
         Temporal basis (:func:`pdvc.correlation.make_basis` names, ``"drift"``
         = {1, t, t², cos θ, sin θ}). Only names can be written to a config.
+        ``"jolt_steps"``: the ``drift`` basis plus a step starting at each
+        view whose fit stays poor after the previous stages (a local dip of
+        its SNR: :func:`pdvc.calibration.jolt_views`) and at its two
+        neighbours; the stage is skipped when no view stands out. Only those
+        views are freed.
     frame : {"sample", "lab"}
     fixed : tuple of str
         Parameters of ``frame`` held at zero, among ``tx ty tz rx ry rz``.
@@ -126,7 +135,7 @@ class Stage:
             raise StageError(f"stage name must be a non-empty string, got {self.name!r}")
         w = f"stage {self.name!r}: "
         if isinstance(self.basis, str):
-            if not is_basis_name(self.basis):
+            if self.basis.strip().lower() != JOLT_BASIS and not is_basis_name(self.basis):
                 raise StageError(f"{w}basis must be one of {BASIS_NAMES}, a TemporalBasis or an array, got {self.basis!r}")
             set_("basis", self.basis.strip().lower())
         elif not isinstance(self.basis, (TemporalBasis, np.ndarray)):
@@ -241,7 +250,7 @@ _RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
 
 def recipe_stages(
     recipe: str = "default", det_shape=None, *, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
-    warmup_basis: str = "drift", **model,
+    warmup_basis: str = "drift", jolts: bool = True, **model,
 ) -> tuple:
     """The stage list of a named recipe.
 
@@ -268,6 +277,9 @@ def recipe_stages(
         {1, t, t², cos θ, sin θ}; ``"model"``, the model stage's own basis
         and frame (so that the model can take back anything the warm-up
         measured).
+    jolts : bool
+        ``default`` recipe: end with :func:`jolt_stage` (skipped unless some
+        views' fit stays poor after the smooth model).
     **model
         Overrides of the model stage's fields (``basis``, ``frame``,
         ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
@@ -306,7 +318,22 @@ def recipe_stages(
         if n_warm:
             stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
         stages.append(base.replace(scale=s, rounds=n_outer - n_warm))
+    if recipe == "default" and jolts:
+        stages.append(jolt_stage(stages[-1]))
     return tuple(stages)
+
+
+def jolt_stage(model: Stage, rounds: int = 5) -> Stage:
+    """After a smooth model: a step in the lab translations at each view whose fit stays poor (a jolt).
+
+    Skipped when no view stands out. Rotations and the translation along
+    the beam (a magnification change) stay fixed; it runs its rounds (a
+    refinement: its status does not replace the model's).
+    """
+    return model.replace(
+        name="jolts", basis=JOLT_BASIS, frame="lab", fixed=("rx", "ry", "rz", "ty"), method="full", rounds=rounds,
+        until="rounds", stall_ratio=None, guards=("consistency",),
+    )
 
 
 def warmup_stage(model: Stage, *, scale: int, rounds: int = 1, basis: str = "drift") -> Stage:
