@@ -68,6 +68,8 @@ class _Progress:
             )
         elif event == "resume":
             msg = f"resuming at stage {info.get('stage_index', 0) + 1} after {info.get('rounds')} rounds"
+        elif event == "skip":
+            msg = f"  {info.get('name')}: skipped, {info.get('why', '')}"
         elif event == "assess":
             msg = "uncertainty and motion modes at the geometry kept"
         else:

@@ -286,6 +286,8 @@ class _StageRun:
             views = jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
             if views.size == 0:
                 log.info("stage %s: no view's fit stands out: no jolt, skipped", st.name)
+                if self.progress is not None:
+                    self.progress(dict(event="skip", name=st.name, why="no view's fit stands out (no jolt)"))
                 return self.poses, status, None, None
             n = self.ctx.geom.n_views
             at = np.unique(np.clip(np.concatenate([views - 1, views, views + 1]), 1, n - 1))  # the jump is near the dip
