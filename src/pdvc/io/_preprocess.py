@@ -318,6 +318,17 @@ def normalize(
     return out, report
 
 
+def _column_indices(value, n_cols: int, name: str) -> np.ndarray:
+    """Sorted unique column indices (negative ones count from the end), checked against ``n_cols``."""
+    try:
+        idx = np.asarray(value, dtype=np.int64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InputTypeError(f"{name} must be a sequence of column indices, got {value!r}") from exc
+    if np.any((idx < -n_cols) | (idx >= n_cols)):
+        raise ShapeError(f"{name} must lie inside the detector's {n_cols} columns, got {value!r}")
+    return np.unique(idx % n_cols)
+
+
 def flats_from_columns(raw: RawScan, columns=slice(0, 30)) -> RawScan:
     """A per-view flat from open-beam detector columns, for scans without flats.
 
@@ -359,13 +370,7 @@ def flats_from_columns(raw: RawScan, columns=slice(0, 30)) -> RawScan:
     if isinstance(columns, slice):
         idx = np.arange(n_cols)[columns]
     else:
-        try:
-            idx = np.asarray(columns, dtype=np.int64).reshape(-1)
-        except (TypeError, ValueError) as exc:
-            raise InputTypeError(f"columns must be a slice or a sequence of ints, got {columns!r}") from exc
-        if np.any((idx < -n_cols) | (idx >= n_cols)):
-            raise ShapeError(f"columns must lie inside the detector's {n_cols} columns, got {columns!r}")
-        idx = np.unique(idx % n_cols)
+        idx = _column_indices(columns, n_cols, "columns")
     if idx.size == 0:
         raise DataError(f"columns must select at least one of the detector's {n_cols} columns, got {columns!r}")
     per_view = raw.data[:, :, idx].mean(axis=2, dtype=np.float64).astype(np.float32)  # (n_views, n_rows)
@@ -545,13 +550,7 @@ def bad_pixel_mask(det_shape, mask=None, dead_columns=None) -> tuple[np.ndarray,
             raise DataError("mask must be finite (0/1 or boolean; nonzero = bad pixel)")
         out |= arr.astype(bool)
     if dead_columns is not None:
-        try:
-            cols = np.asarray(dead_columns, dtype=np.int64).reshape(-1)
-        except (TypeError, ValueError) as exc:
-            raise InputTypeError(f"dead_columns must be a sequence of column indices, got {dead_columns!r}") from exc
-        if np.any((cols < -n_cols) | (cols >= n_cols)):
-            raise ShapeError(f"dead_columns must lie inside the detector's {n_cols} columns, got {list(dead_columns)}")
-        cols = np.unique(cols % n_cols)
+        cols = _column_indices(dead_columns, n_cols, "dead_columns")
         out[:, cols] = True
         desc.append(f"dead columns {[int(c) for c in cols]}")
     return out, ", ".join(desc) if desc else "none"
