@@ -46,6 +46,7 @@ def test_cli_simulate_inspect_calibrate_reconstruct(simulated, tmp_path, capsys)
     assert main(["inspect", str(cfg)]) == 0
     text = capsys.readouterr().out
     assert "80 views" in text and "cone beam" in text
+    assert "sample and volume: the sample lies inside the volume" in text
     out = tmp_path / "cal"
     assert main(["-q", "calibrate", str(cfg), "--out", str(out)]) == 0
     text = capsys.readouterr().out

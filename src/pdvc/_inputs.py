@@ -273,4 +273,8 @@ def inspect_scan(config) -> tuple[list, list]:
     frac = check_coverage(g, vg)
     if frac < 0.5:
         problems.append(f"the volume box projects onto the detector for only {100 * frac:.0f}% of its extent at the worst view")
+    from .calibration import detect_truncation, reconstruct
+
+    trunc = detect_truncation(reconstruct(p, vg, g), vg)  # read off the nominal reconstruction
+    lines.append(f"sample and volume: {trunc.describe()}")
     return lines, problems
