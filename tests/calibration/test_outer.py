@@ -170,12 +170,10 @@ def test_rising_data_inconsistency_from_the_start_is_divergence(small_case):
 def test_rising_data_inconsistency_after_the_best_round_keeps_the_best_poses(small_case):
     # better at the second call, then worse and worse: the guard keeps the poses of the best (a success)
     c = small_case
-    calls = []
+    from tests.correlation.cases import best_at_second_call
 
-    def reconstruct(p, vg, g):
-        calls.append(g)
-        k = len(calls) - 1
-        return fdk(p, vg, g) * (1.0 + (0.3 if k == 0 else 0.5 * (k - 1)))
+    calls = []
+    reconstruct = best_at_second_call(calls)
 
     out = self_calibrate(
         c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct=reconstruct, warmup=0, max_outer=6,

@@ -180,15 +180,11 @@ def test_the_report_describes_the_poses_kept_after_a_rollback(small, tmp_path):
     # and uncertainties) must describe those poses, not the discarded last round.
     import h5py
 
-    from pdvc.recon import fdk
+    from tests.correlation.cases import best_at_second_call
 
     c = small
     calls = []
-
-    def reconstruct(p, vg, g):
-        calls.append(g)
-        k = len(calls) - 1
-        return fdk(p, vg, g) * (1.0 + (0.3 if k == 0 else 0.5 * (k - 1)))
+    reconstruct = best_at_second_call(calls)
 
     stages = [Stage(fixed=("rx", "ry", "rz"), reconstruct=reconstruct, rounds=5, stall_ratio=None, tol_px=1e-9)]
     res = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, stages=stages, init="none", out_dir=tmp_path / "o")

@@ -94,3 +94,18 @@ def self_calibrate(case: Case, *, n_outer: int = 3, **options):
 
 def error_px(case: Case, geom) -> float:
     return reprojection_error(geom, case.scan.true_geometry, case.points).rms
+
+
+def best_at_second_call(calls: list):
+    """A reconstruction (FDK scaled) that fits best at its second call, then worse at every call.
+
+    Each geometry it is called with is appended to ``calls``: the consistency guard must keep the
+    poses of the second call.
+    """
+
+    def rec(p, vg, g):
+        calls.append(g)
+        k = len(calls) - 1
+        return fdk(p, vg, g) * (1.0 + (0.3 if k == 0 else 0.5 * (k - 1)))
+
+    return rec

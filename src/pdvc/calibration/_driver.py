@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
+from scipy.ndimage import median_filter
 
 from ..correlation import (
     CorrelationResult,
@@ -52,8 +53,24 @@ class StageOutcome:
     elapsed_s: float
 
 
+class PosesResult:
+    """What every calibration result shares: the poses kept and a status (``poses``, ``status`` fields)."""
+
+    @property
+    def rotvecs(self) -> np.ndarray:
+        return self.poses.rotvecs
+
+    @property
+    def translations(self) -> np.ndarray:
+        return self.poses.translations
+
+    @property
+    def success(self) -> bool:
+        return Status(self.status).success
+
+
 @dataclass(frozen=True)
-class DriverResult:
+class DriverResult(PosesResult):
     """Outcome of :func:`run_stages`.
 
     Attributes
@@ -85,10 +102,6 @@ class DriverResult:
     correlation: Optional[CorrelationResult]
     guard_volume: Optional[tuple] = None
 
-    @property
-    def success(self) -> bool:
-        return self.status.success
-
 
 def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0) -> np.ndarray:
     """Views whose SNR dips below their neighbours': where a smooth model missed a jolt.
@@ -103,10 +116,7 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
     n = s.size
     if n < window + 2:
         return np.array([], int)
-    h = window // 2
-    padded = np.pad(s, h, mode="edge")
-    local = np.array([np.median(padded[k: k + window]) for k in range(n)])
-    dip = local - s
+    dip = median_filter(s, size=window, mode="nearest") - s
     # the view-to-view scatter of the SNR (robust: 1.4826 MAD of the differences between neighbours)
     diff = np.diff(s)
     sigma = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)

@@ -19,7 +19,7 @@ from ..correlation import CorrelationResult, drift_basis, estimate_noise_varianc
 from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..status import Status
-from ._driver import reconstruct, refined_grid, run_stages
+from ._driver import PosesResult, reconstruct, refined_grid, run_stages
 from ._stages import StageError, recipe_stages
 
 __all__ = ["self_calibrate", "OuterResult", "OuterError", "drift_basis", "refined_grid", "gauge_text"]
@@ -41,7 +41,7 @@ def gauge_text(kind: str, scale: bool) -> str:
 
 
 @dataclass(frozen=True)
-class OuterResult:
+class OuterResult(PosesResult):
     """Outcome of :func:`self_calibrate`.
 
     Attributes
@@ -75,18 +75,6 @@ class OuterResult:
     corr_vol_geom: VolumeGeometry
     status: Status
     message: str
-
-    @property
-    def rotvecs(self) -> np.ndarray:
-        return self.poses.rotvecs
-
-    @property
-    def translations(self) -> np.ndarray:
-        return self.poses.translations
-
-    @property
-    def success(self) -> bool:
-        return self.status.success
 
     @property
     def n_outer(self) -> int:

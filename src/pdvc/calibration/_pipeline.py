@@ -30,7 +30,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._driver import reconstruct, refined_grid, run_stages
+from ._driver import PosesResult, reconstruct, refined_grid, run_stages
 from ._outer import gauge_text
 from ._stages import Stage, StageError, recipe_stages
 
@@ -44,7 +44,7 @@ class CalibrationError(PdvcError, ValueError):
 
 
 @dataclass(frozen=True)
-class CalibrationResult:
+class CalibrationResult(PosesResult):
     """Outcome of :func:`calibrate`.
 
     Attributes
@@ -123,18 +123,6 @@ class CalibrationResult:
     rejected_geometry: Optional[VectorGeometry] = None
     truncation: object = None
     residual: tuple = ()
-
-    @property
-    def success(self) -> bool:
-        return Status(self.status).success
-
-    @property
-    def rotvecs(self) -> np.ndarray:
-        return self.poses.rotvecs
-
-    @property
-    def translations(self) -> np.ndarray:
-        return self.poses.translations
 
 
 def per_view_snr(projections, volume, vol_geom, geom, *, weights=None) -> np.ndarray:

@@ -442,7 +442,7 @@ def correlate(
     if method not in ("full", "pgd"):
         raise CorrelationError(f"method must be 'full' or 'pgd', got {method!r}")
     prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend)
-    s, n, c, gamma2 = prob.projections, geom.n_views, prob.center, prob.gamma2
+    n, c, gamma2 = geom.n_views, prob.center, prob.gamma2
     rv = np.zeros((n, 3)) if initial_rotvecs is None else np.array(initial_rotvecs, float).reshape(n, 3)
     t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
 
