@@ -8,6 +8,7 @@ from .recon import fbp, fdk
 from .correlation import correlate
 from ._calibrate import calibrate
 from .calibration import CalibrationResult
+from .compute import use_scheduler
 
 __version__ = "0.1.0"
 
@@ -32,4 +33,5 @@ __all__ = [
     "correlate",
     "calibrate",
     "CalibrationResult",
+    "use_scheduler",
 ]

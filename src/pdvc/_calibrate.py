@@ -98,9 +98,10 @@ def _fingerprint(projections, geom, vol_geom, options: dict, config) -> dict:
     """What ``--resume`` checks: data, geometry and settings (callables left out; arrays such as weights by their hash)."""
     from .io import run_fingerprint
 
-    settings = {"options": {k: v for k, v in options.items() if not callable(v)}}
+    # where it runs (scheduler, [compute]) does not change the result: a run may resume on another
+    settings = {"options": {k: v for k, v in options.items() if not callable(v) and k != "scheduler"}}
     if config is not None:
         d = config.to_dict() if hasattr(config, "to_dict") else dict(config)
         # [data] is left out: where the projections are read from may move; what they hold is the data hash
-        settings["config"] = {k: v for k, v in d.items() if k not in ("output", "data")}
+        settings["config"] = {k: v for k, v in d.items() if k not in ("output", "data", "compute")}
     return run_fingerprint(projections, geom, vol_geom, settings)

@@ -85,7 +85,8 @@ def _demo(args: argparse.Namespace) -> int:
 
     print(f"pdvc {__version__} demo: cast-iron rod, volume {args.size}^3, {args.views} views over 360 deg, Poisson noise i0 = 2e4")
     print("  simulated with the analytic ellipsoid projector; motion: axis tilted 0.5 deg and offset, precessing 0.15 deg, drifting")
-    res = run_demo(size=args.size, n_views=args.views, seed=args.seed, out_dir=args.out, overwrite=args.overwrite, progress=_Progress(quiet=args.quiet))
+    res = run_demo(size=args.size, n_views=args.views, seed=args.seed, out_dir=args.out, overwrite=args.overwrite, progress=_Progress(quiet=args.quiet),
+                   scheduler=args.scheduler)
     cal = res.calibration
     print(f"  simulation {res.t_simulate:.1f} s, calibration {res.t_calibrate:.1f} s ({cal.message})")
     print()
@@ -114,7 +115,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     from ._inputs import load_scan
 
     scan = load_scan(args.config, out_dir=args.out)
-    cfg = scan.config
+    cfg = _with_scheduler(scan.config, args.scheduler)
     out = args.out or cfg.output.dir
     if out is None:
         raise PdvcError("no output folder: pass --out DIR or set [output] dir in the config")
@@ -131,6 +132,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         full_resolution_geometry=scan.geometry_unbinned,
         progress=_Progress(quiet=args.quiet),
         weights=scan.weights,
+        scheduler=cfg.compute.scheduler,
         **scan.calibration_options,
     )
     verdict = "calibration succeeded" if res.success else "CALIBRATION DID NOT SUCCEED"
@@ -164,7 +166,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise PdvcError(f"--out {str(out)!r} exists; pass --overwrite to replace it")
-    vol = reconstruct(scan.projections, scan.vol_geom, geom)
+    from .compute import use_scheduler
+
+    with use_scheduler(_with_scheduler(scan.config, args.scheduler).compute.scheduler):
+        vol = reconstruct(scan.projections, scan.vol_geom, geom)
     with atomic_path(out) as tmp:
         tifffile.imwrite(tmp, vol.astype(np.float32), metadata={"axes": "ZYX"})
     print(f"reconstruction {'x'.join(map(str, vol.shape))} written to {out}")
@@ -226,6 +231,31 @@ def _inspect(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _with_scheduler(cfg, scheduler):
+    """The config with ``--scheduler`` in ``[compute]`` when given (it overrides the file)."""
+    if scheduler is None:
+        return cfg
+    import dataclasses
+
+    return dataclasses.replace(cfg, compute=dataclasses.replace(cfg.compute, scheduler=scheduler))
+
+
+def _scheduler_arg(text: str) -> str:
+    from .compute import SchedulerError, parse_scheduler
+
+    try:
+        parse_scheduler(text)
+    except SchedulerError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text.strip()
+
+
+_SCHEDULER_HELP = (
+    "where the projection passes and reconstructions run: 'threads' (default), 'local:N' (a local Dask cluster "
+    "of N worker processes) or 'tcp://host:port' (a running Dask cluster); overrides [compute] scheduler"
+)
+
+
 def _print_scan(scan) -> None:
     g = scan.geometry
     print(f"data: {scan.projections.shape[0]} views of {g.det_shape[0]}x{g.det_shape[1]} px ({g.kind} beam), grid {'x'.join(map(str, scan.vol_geom.shape))}")
@@ -254,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--size", type=int, default=64, help="volume edge in voxels (default 64)")
     demo.add_argument("--views", type=int, default=150, help="projections over 360 deg (default 150)")
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--scheduler", type=_scheduler_arg, help=_SCHEDULER_HELP)
     demo.set_defaults(func=_demo)
 
     cal = sub.add_parser("calibrate", help="calibrate a scan described by a TOML config")
@@ -261,6 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--out", help="output folder (default: [output] dir of the config)")
     cal.add_argument("--overwrite", action="store_true", help="allow a non-empty output folder")
     cal.add_argument("--resume", action="store_true", help="continue an interrupted run in the output folder")
+    cal.add_argument("--scheduler", type=_scheduler_arg, help=_SCHEDULER_HELP)
     cal.set_defaults(func=_calibrate)
 
     rec = sub.add_parser("reconstruct", help="reconstruct a scan (FDK / FBP) with its nominal or a calibrated geometry")
@@ -268,6 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--geometry", help="per-view vectors (.npy, (n_views, 12)), e.g. geometry.npy of a calibration")
     rec.add_argument("--out", default="volume.tif", help="output TIFF (default volume.tif)")
     rec.add_argument("--overwrite", action="store_true")
+    rec.add_argument("--scheduler", type=_scheduler_arg, help=_SCHEDULER_HELP)
     rec.set_defaults(func=_reconstruct)
 
     sim = sub.add_parser("simulate", help="write a simulated scan with known motion, its true geometry and a config")

@@ -24,6 +24,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..compute import current_session, scheduler_keyword
 from ..correlation import Assessment, assess, coarse_volume, estimate_noise_variance, shannon_entropy, snr_db
 from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry
@@ -128,6 +129,13 @@ class CalibrationResult(PosesResult):
 def per_view_snr(projections, volume, vol_geom, geom, *, weights=None) -> np.ndarray:
     """SNR (dB) of each view: ``20 log10(std(s_k) / std(s_k - Π_k f))``."""
     p = np.asarray(projections, np.float32)
+    if current_session() is not None:  # on a Dask cluster: one number per view comes back
+        return current_session().per_view(_snr_chunk, volume, vol_geom, geom, p, weights)
+    return _snr_of(p, p - forward(volume, vol_geom, geom), weights)
+
+
+def _snr_chunk(volume, vol_geom, geom, p, weights) -> np.ndarray:
+    """:func:`per_view_snr` of one chunk of views (run by a Dask worker)."""
     return _snr_of(p, p - forward(volume, vol_geom, geom), weights)
 
 
@@ -182,6 +190,7 @@ def _validate(projections, geom, vol_geom, weights):
     return p
 
 
+@scheduler_keyword  # scheduler=None | "threads" | "local:N" | "tcp://host:port": the whole run on it
 def calibrate(
     projections,
     geom: VectorGeometry,
@@ -247,6 +256,10 @@ def calibrate(
         an interrupted run from such a state.
     progress : callable, optional
         Called with a dict ``{"event": ...}`` at every step.
+    scheduler : {None, "threads", "local:N", "tcp://host:port"} or distributed.Client
+        Where the projection passes and reconstructions run
+        (:func:`pdvc.compute.use_scheduler`); None keeps the current one
+        (threads unless inside ``use_scheduler``). Same results.
 
     Returns
     -------

@@ -18,6 +18,7 @@ from ._config import (
     DataConfig,
     GeometryConfig,
     OutputConfig,
+    ComputeConfig,
     PreprocessConfig,
     VolumeConfig,
     build_geometry,
@@ -46,7 +47,7 @@ from ._vendor import VendorGeometry, read_nikon, read_skyscan, read_vendor_geome
 
 __all__ = [
     "Config", "ConfigError", "DataConfig", "GeometryConfig", "AngleRange", "VolumeConfig",
-    "PreprocessConfig", "CalibrationConfig", "OutputConfig", "load_config", "write_config",
+    "PreprocessConfig", "CalibrationConfig", "OutputConfig", "ComputeConfig", "load_config", "write_config",
     "build_geometry", "build_volume_geometry", "resolve_angles", "check_coverage",
     "VendorGeometry", "read_nikon", "read_skyscan", "read_vendor_geometry",
     "export_astra", "astra_volume_geometry", "export_tigre", "tigre_to_geometry", "export_leap", "export_cil", "write_exports",

@@ -138,6 +138,12 @@ that type needs) are required; everything else has the default shown.
     exports = true              # geometry files for ASTRA, TIGRE, LEAP and CIL
     report = true               # figures and the HTML report
 
+    [compute]                   # where the projection passes and reconstructions run (same results)
+    scheduler = "threads"       # "threads" (this process) | "local:N" (a local Dask cluster of N worker
+                                # processes, "local:NxT": T threads each) | "tcp://host:port" (a running
+                                # Dask cluster); --scheduler overrides it; needs pip install 'pdvc[dask]'
+                                # for anything but "threads" (docs/distributed.md)
+
 Default volume
 --------------
 :func:`build_volume_geometry` fills what ``[volume]`` leaves out from the
@@ -185,6 +191,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 import tomli_w
 
+from ..compute import SchedulerError, parse_scheduler
 from ..correlation import BASIS_NAMES, is_basis_name
 from ..errors import GeometryError, PdvcError
 from ..geometry import VectorGeometry, VolumeGeometry, circular_cone, parallel
@@ -201,6 +208,7 @@ __all__ = [
     "PreprocessConfig",
     "CalibrationConfig",
     "OutputConfig",
+    "ComputeConfig",
     "load_config",
     "write_config",
     "build_geometry",
@@ -389,7 +397,14 @@ class OutputConfig:
     report: bool = True
 
 
-_SECTIONS = ("data", "geometry", "volume", "preprocess", "calibration", "output")
+@dataclass(frozen=True)
+class ComputeConfig:
+    """``[compute]``: where the operators run (:func:`pdvc.compute.parse_scheduler`)."""
+
+    scheduler: str = "threads"
+
+
+_SECTIONS = ("data", "geometry", "volume", "preprocess", "calibration", "output", "compute")
 
 
 @dataclass(frozen=True)
@@ -406,6 +421,7 @@ class Config:
     calibration: CalibrationConfig = CalibrationConfig()
     output: OutputConfig = field(default_factory=lambda: OutputConfig(dir=os.path.abspath("pdvc_output")))
     source: Optional[str] = field(default=None, compare=False)
+    compute: ComputeConfig = ComputeConfig()
 
     def to_dict(self) -> dict:
         """Plain TOML-ready dict of every set value (None values are left out)."""
@@ -856,6 +872,16 @@ def _parse_output(t: _Table) -> OutputConfig:
     return out
 
 
+def _parse_compute(t: _Table) -> ComputeConfig:
+    text = _string(t.pop("scheduler", "threads"), "compute.scheduler")
+    try:
+        parse_scheduler(text)
+    except SchedulerError as exc:
+        raise ConfigError(f"compute.{exc}") from None
+    t.finish(tuple(f.name for f in dataclasses.fields(ComputeConfig)))
+    return ComputeConfig(scheduler=text.strip())
+
+
 # -- public API --------------------------------------------------------------
 def load_config(source, *, base_dir=None) -> Config:
     """Read and check a configuration.
@@ -918,6 +944,7 @@ def load_config(source, *, base_dir=None) -> Config:
         preprocess=_parse_preprocess(_Table(raw, "preprocess", base)),
         calibration=_parse_calibration(_Table(raw, "calibration", base)),
         output=_parse_output(_Table(raw, "output", base)),
+        compute=_parse_compute(_Table(raw, "compute", base)),
         source=where,
     )
 

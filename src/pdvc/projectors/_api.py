@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..compute._scheduler import current_session
 from ..errors import InputTypeError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry
 from ._registry import get_backend
@@ -96,6 +97,9 @@ def forward(volume, vol_geom: VolumeGeometry, geom: VectorGeometry, *, backend="
     vol = _as_volume(volume, vol_geom)
     shape = (geom.n_views,) + geom.det_shape
     out = np.empty(shape, np.float32) if out is None else _check_out(out, shape)
+    session = current_session()  # a Dask cluster made current by pdvc.compute.use_scheduler
+    if session is not None:
+        return session.forward(vol, vol_geom, geom, out, backend)
     return get_backend(backend).forward(vol, vol_geom, geom, out)
 
 
@@ -231,7 +235,11 @@ def reduce_views(
     if not np.all(np.isfinite(meas)):
         raise ShapeError("measured must be finite (no NaN or Inf); mask bad pixels with weights instead")
     c = _center(center, vol_geom)
-    red = get_backend(backend).reduce(vol, vol_geom, geom, c, meas, w)
+    session = current_session()  # a Dask cluster made current by pdvc.compute.use_scheduler
+    if session is not None:
+        red = session.reduce(vol, vol_geom, geom, c, meas, w, backend)
+    else:
+        red = get_backend(backend).reduce(vol, vol_geom, geom, c, meas, w)
     iu = np.triu_indices(6)
     M = np.zeros((geom.n_views, 6, 6))
     M[:, iu[0], iu[1]] = red[:, :21]

@@ -7,6 +7,7 @@ import logging
 import numba
 import numpy as np
 
+from ..compute._scheduler import current_session
 from ..errors import GeometryError, InputTypeError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry
 from ._filters import check_filter, filter_rows, ramp_filter_response
@@ -216,6 +217,11 @@ def _cosine_weights(vec, sdd, red, jj, ii) -> np.ndarray:
 
 # -- the shared driver --------------------------------------------------------
 def _reconstruct(arr, vol_geom, geom, weights: ScanWeights, *, filter, cutoff, out, views_per_block):
+    session = current_session()  # a Dask cluster made current by pdvc.compute.use_scheduler: by slabs of z
+    if session is not None:
+        return session.reconstruct(
+            arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out, views_per_block=views_per_block
+        )
     nr, nc = geom.det_shape
     cone = geom.kind == "cone"
     P, sod, sdd = projection_matrices(vol_geom, geom, center=weights.center if cone else None)
