@@ -4,7 +4,9 @@
   short scan (Parker), irregular angles;
 * :func:`fbp`: filtered back-projection for parallel beam;
 * :func:`ramp_filter_response`: the windowed ramp filters they use
-  (:data:`FILTERS` lists the names).
+  (:data:`FILTERS` lists the names);
+* :func:`spline_upsample`: a volume on a finer grid of the same box
+  (:func:`refined_grid`), by cubic B-spline interpolation.
 
 Both accept a corrected geometry (each view's source and detector moved
 and tilted) directly: the back-projection uses every view's exact
@@ -14,5 +16,6 @@ projection matrix.
 from ._fbp import fbp, fdk
 from ._filters import FILTERS, ramp_filter_response
 from ._iterative import cgls, nonneg_ls
+from ._upsample import refined_grid, spline_upsample
 
-__all__ = ["fdk", "fbp", "cgls", "nonneg_ls", "ramp_filter_response", "FILTERS"]
+__all__ = ["fdk", "fbp", "cgls", "nonneg_ls", "refined_grid", "spline_upsample", "ramp_filter_response", "FILTERS"]
