@@ -192,7 +192,7 @@ def _install_probe() -> _Probe:
     probe = _Probe()
     drv = importlib.import_module("pdvc.calibration._driver")
     eng = importlib.import_module("pdvc.correlation._engine")
-    for attr in ("reconstruct", "cgls", "nonneg_ls"):  # the driver's correlation-volume / guard reconstructions
+    for attr in ("reconstruct", "cgls", "nonneg_ls", "spline_upsample"):  # the correlation volume and its oversampling
         probe.wrap(drv, attr, "recon")
     probe.wrap(drv, "coarse_grain", "coarse")
     probe.wrap(drv, "correlate", "correlate")

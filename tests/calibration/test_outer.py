@@ -167,6 +167,37 @@ def test_rising_data_inconsistency_from_the_start_is_divergence(small_case):
     assert out.geometry == calls[0] == c.scan.geometry
 
 
+def test_a_refinement_that_finds_nothing_better_keeps_the_converged_poses(small_case):
+    # a converged model, then a second stage whose reconstructions get worse at every call: the
+    # second stage keeps the poses it started from, and the run is a success (not "diverged")
+    from pdvc.calibration import Stage, run_stages
+
+    c = small_case
+    calls = []
+
+    def worse_and_worse(p, vg, g):
+        calls.append(g)
+        return fdk(p, vg, g) * (1.0 + 0.5 * (len(calls) - 1))
+
+    first = Stage(name="model", basis="constant", frame="lab", fixed=("rx", "ry", "rz"), rounds=6, tol_px=0.05)  # converges
+    second = first.replace(name="refine", reconstruct=worse_and_worse, rounds=4, tol_px=1e-9)
+    from pdvc.correlation import estimate_noise_variance
+
+    drv = run_stages(c.scan.projections, c.scan.geometry, c.vol_geom, [first, second],
+                     noise_variance=estimate_noise_variance(c.scan.projections))
+    assert drv.stages[0].status.success
+    assert drv.stages[1].status == Status.CONSISTENCY_GUARD and drv.success
+    refine_rounds = [h for h in drv.history if h["stage"] == "refine"]
+    assert len(refine_rounds) == 1  # the first refinement round was recorded; the second's chi_before rose
+    # the poses kept are those the first stage converged to: the geometry of the first refinement call
+    assert c.scan.geometry.apply(drv.poses) == calls[0]
+    # alone (nothing converged before it), the same stage diverges
+    calls.clear()
+    alone = run_stages(c.scan.projections, c.scan.geometry, c.vol_geom, [second],
+                       noise_variance=estimate_noise_variance(c.scan.projections))
+    assert alone.status == Status.DIVERGED and not alone.success
+
+
 def test_rising_data_inconsistency_after_the_best_round_keeps_the_best_poses(small_case):
     # better at the second call, then worse and worse: the guard keeps the poses of the best (a success)
     c = small_case

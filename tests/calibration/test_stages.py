@@ -42,6 +42,8 @@ from pdvc.io import ConfigError, load_config, write_config
         (dict(tol_px=0.0), "tol_px"),
         (dict(until="forever"), "until"),
         (dict(stall_ratio=-1.0), "stall_ratio"),
+        (dict(oversample_by="zoom"), "oversample_by"),
+        (dict(accelerate="yes"), "accelerate"),
     ],
 )
 def test_a_bad_stage_field_is_named(kw, field):
@@ -222,3 +224,20 @@ def test_a_good_calibration_of_a_small_drift_is_not_rejected_as_worse_than_nomin
     pts = sample_points(vg, 5, fraction=0.6)
     assert reprojection_error(res.geometry, truth, pts).rms < 0.5 * reprojection_error(geom, truth, pts).rms
     assert np.mean(res.snr_after) > np.mean(res.snr_before)
+
+
+def test_correlation_volume_by_spline_is_the_upsampled_stage_reconstruction():
+    """oversample_by="spline": FDK on the stage's grid, then the cubic B-spline onto the finer grid."""
+    from pdvc.calibration import correlation_volume, reconstruct, refined_grid
+    from pdvc.recon import spline_upsample
+    from tests.correlation.cases import make_case
+
+    c = make_case("offset", n=24, n_views=48)
+    p, g, vg = c.scan.projections, c.scan.geometry, c.vol_geom
+    by_spline = correlation_volume(p, vg, g, Stage(oversample=2, oversample_by="spline"))
+    np.testing.assert_allclose(by_spline, spline_upsample(reconstruct(p, vg, g), 2), rtol=1e-6, atol=1e-6)
+    direct = correlation_volume(p, vg, g, Stage(oversample=2, oversample_by="reconstruction"))
+    np.testing.assert_allclose(direct, reconstruct(p, refined_grid(vg, 2), g), rtol=1e-6, atol=1e-6)
+    # the two fine volumes describe the same object: close, not equal
+    assert by_spline.shape == direct.shape == refined_grid(vg, 2).shape
+    assert np.linalg.norm(by_spline - direct) < 0.2 * np.linalg.norm(direct)

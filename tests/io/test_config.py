@@ -201,6 +201,8 @@ def test_key_of_another_geometry_type_is_named(tmp_path):
         ("calibration", "fixed", ["tx", "yaw"], r"calibration\.fixed\[1\] must be one of 'tx'"),
         ("calibration", "scales", [2, 4], r"calibration\.scales must be strictly decreasing"),
         ("calibration", "max_outer", 0, r"calibration\.max_outer must be an integer >= 1, got 0"),
+        ("calibration", "oversample_by", "zoom", r"calibration\.oversample_by must be one of 'spline', 'reconstruction'"),
+        ("calibration", "accelerate", "yes", r"calibration\.accelerate must be true or false, got 'yes' \(string\)"),
         ("volume", "shape", [1, 10, 10], r"volume\.shape\[0\] must be an integer >= 2"),
         ("volume", "voxel_size", -0.1, r"volume\.voxel_size\[0\] must be positive"),
         ("output", "volume_format", "raw", r"output\.volume_format must be one of"),

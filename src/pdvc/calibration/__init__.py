@@ -17,7 +17,7 @@ The method and the reasons behind each default: ``docs/method.md``.
 
 from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
-from ._driver import DriverResult, StageOutcome, jolt_views, reconstruct, refined_grid, run_stages
+from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views, reconstruct, refined_grid, run_stages
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
@@ -27,6 +27,7 @@ from ._stages import (
     GUARDS,
     RECIPES,
     RECONSTRUCTIONS,
+    OVERSAMPLE_BY,
     Stage,
     StageError,
     auto_scales,
@@ -42,6 +43,7 @@ __all__ = [
     "StageError",
     "RECIPES",
     "RECONSTRUCTIONS",
+    "OVERSAMPLE_BY",
     "GUARDS",
     "recipe_stages",
     "warmup_stage",
@@ -56,6 +58,7 @@ __all__ = [
     "StageOutcome",
     "refined_grid",
     "reconstruct",
+    "correlation_volume",
     "self_calibrate",
     "OuterResult",
     "OuterError",

@@ -32,11 +32,11 @@ from ..correlation import (
     view_angles,
 )
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
-from ..recon import cgls, fbp, fdk, nonneg_ls
+from ..recon import cgls, fbp, fdk, nonneg_ls, refined_grid, spline_upsample
 from ..status import Status
 from ._stages import JOLT_BASIS, Stage, StageError
 
-__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "jolt_views"]
+__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "jolt_views"]
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -125,31 +125,35 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
     return np.nonzero((dip > z * sigma) & (dip > min_drop_db))[0]
 
 
-def refined_grid(vol_geom: VolumeGeometry, oversample: int) -> VolumeGeometry:
-    """The same region as ``vol_geom`` with ``oversample`` x finer voxels."""
-    ov = int(oversample)
-    return VolumeGeometry(
-        tuple(n * ov for n in vol_geom.shape),
-        voxel_size=tuple(s / ov for s in vol_geom.voxel_size),
-        offset=vol_geom.offset,
-    )
-
-
 def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) -> np.ndarray:
     """FDK (cone beam) or FBP (parallel beam): the analytic reconstruction of the calibration."""
     return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom, **kw)
 
 
-def _correlation_reconstruction(stage: Stage):
-    """(correlation-volume reconstruction, the stage's final-grid reconstruction)."""
+def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage):
+    """The volume a stage correlates against, on ``refined_grid(vol_geom, stage.oversample)``.
+
+    ``vol_geom`` is the stage's grid. FDK/FBP with ``oversample_by="spline"``
+    reconstructs on it and interpolates by cubic B-splines; otherwise the
+    stage's reconstruction runs on the fine grid itself.
+    """
+    k = stage.oversample
     r = stage.reconstruct
+    fine = refined_grid(vol_geom, k)
     if callable(r):
-        return r, r
+        return r(projections, fine, geom)
     if r == "fdk":
-        return reconstruct, reconstruct
+        if k > 1 and stage.oversample_by == "spline":
+            return spline_upsample(reconstruct(projections, vol_geom, geom), k)
+        return reconstruct(projections, fine, geom)
     if r == "nonneg_ls":
-        return (lambda p, vg, g: nonneg_ls(p, vg, g, coarsen=stage.oversample)), reconstruct
-    return (lambda p, vg, g: cgls(p, vg, g)), reconstruct
+        return nonneg_ls(projections, fine, geom, coarsen=k)
+    return cgls(projections, fine, geom)
+
+
+def _final_reconstruction(stage: Stage):
+    """The stage's reconstruction on a grid given (the entropy guard's volume)."""
+    return stage.reconstruct if callable(stage.reconstruct) else reconstruct
 
 
 class _Context:
@@ -252,7 +256,9 @@ def run_stages(
         if progress is not None:
             progress(dict(event="stage", index=i, n_stages=len(stages), name=stage.name, scale=stage.scale,
                           det_shape=g_s.det_shape, volume=vg_s.shape, rounds=stage.rounds))
-        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept)
+        # does it start from poses an earlier stage measured and kept (a warm-up's, a coarser scale's)?
+        refines = any(o.status.success and o.rounds > 0 for o in outcomes)
+        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept, refines=refines)
         poses, status, res, gv = run.run(r0 if i == i0 else 0)
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
@@ -274,14 +280,16 @@ def run_stages(
 class _StageRun:
     """The rounds of one stage and its stopping rules (``docs/method.md``, "Stopping")."""
 
-    def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress, previous=None):
+    def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress, previous=None,
+                 refines=False):
         self.ctx, self.stage, self.index = ctx, stage, index
+        self.refines = refines  # the poses it starts from were measured and kept by an earlier stage
         self.previous = previous  # the correlation kept by the stages before (a jolt stage reads its per-view fit)
         self.basis = stage.basis
         self.poses = poses
         self.history = history
         self.checkpoint, self.progress = checkpoint, progress
-        self.rec, self.rec_final = _correlation_reconstruction(stage)
+        self.rec_final = _final_reconstruction(stage)
         self.n_rounds = 0
         self.best = None  # (chi_before, poses, result) for the consistency guard
         self.ent_best = None
@@ -324,8 +332,11 @@ class _StageRun:
                     self.best = (chi_before, self.poses, self.kept, r)
                 elif chi_before > self.best[0] * (1 + st.diverge_tol):
                     log.info("round %d: chi_before %.5g rose above the best %.5g; keeping the best poses", r, chi_before, self.best[0])
-                    # past its best point (a success) or never better than where it started (diverged)
-                    status = Status.CONSISTENCY_GUARD if self.best[3] > first_round else Status.DIVERGED
+                    # past its best point (a success) or never better than where it started: diverged, unless it
+                    # started from poses an earlier stage measured, which it then keeps (it found nothing better)
+                    status = Status.CONSISTENCY_GUARD if self.best[3] > first_round or self.refines else Status.DIVERGED
+                    if self.best[3] == first_round and self.refines:
+                        log.info("stage %s: no round fitted better than the poses it started from; they are kept", st.name)
                     self.poses, self.kept = self.best[1], self.best[2]
                     break
             if res.status == Status.NO_DESCENT and len(res.chi_history) == 1:
@@ -366,12 +377,12 @@ class _StageRun:
         st, ctx = self.stage, self.ctx
         p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
         vg_c = refined_grid(vg, st.oversample)
-        vol = self.rec(p, vg_c, g.apply(self.poses))
+        vol = correlation_volume(p, vg, g.apply(self.poses), st)
         return correlate(
             vol, vg_c, p, g, basis=self.basis, frame=st.frame, fixed=st.fixed, method=st.method, center=ctx.center,
             weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
-            max_iter=st.max_iter, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
+            max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
             noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend,
         )
 

@@ -25,13 +25,16 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..compute import current_session, scheduler_keyword
-from ..correlation import Assessment, assess, coarse_volume, estimate_noise_variance, shannon_entropy, snr_db
+from ..correlation import (
+    Assessment, assess, coarse_grain, coarse_noise_factor, coarse_volume, coarse_weights, estimate_noise_variance,
+    shannon_entropy, snr_db,
+)
 from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._driver import PosesResult, reconstruct, refined_grid, run_stages
+from ._driver import PosesResult, correlation_volume, reconstruct, refined_grid, run_stages
 from ._outer import gauge_text
 from ._stages import Stage, StageError, recipe_stages
 
@@ -71,10 +74,10 @@ class CalibrationResult(PosesResult):
     vol_geom : VolumeGeometry
     snr_before, snr_after : (n_views,) float
         Per-view SNR (dB) of the projections against the re-projection of
-        the nominal and of the returned geometry's reconstruction, on the
-        grid of the last stage's correlation (``oversample`` x finer than
-        ``vol_geom``): the fit as the calibration measures it, and the one the
-        check against nominal compares.
+        the nominal and of the returned geometry's reconstruction, at the
+        last stage's scale (coarse-grained data, its grid) and on its
+        correlation grid (``oversample`` x finer): the fit as the calibration
+        measures it, and the one the check against nominal compares.
     entropy_before, entropy_after : float
         Shannon entropy (bits) of the two volumes on a common gray range.
     motion : MotionSummary or None
@@ -402,10 +405,23 @@ def _truncation(mode, weights, geom, vol_geom, vol_initial):
     return w, found
 
 
-def _fit(p, vg, geom, weights, gamma2, volume=None):
-    """Per-view SNR and residual diagnosis of ``p`` against a reconstruction on ``vg`` with ``geom``."""
-    vol = reconstruct(p, vg, geom) if volume is None else volume
-    res = p - forward(vol, vg, geom)
+def _fit(p, vol_geom, geom, poses, weights, gamma2, stage: Stage, volume=None):
+    """Per-view SNR and residual diagnosis of ``p`` against FDK/FBP with ``geom`` posed by ``poses``.
+
+    Measured as ``stage`` correlates: on its scale's data (coarse-grained) and
+    its correlation grid; ``volume`` (on the user's grid) is reused when that
+    is the same grid.
+    """
+    s = stage.scale
+    if s > 1:
+        p, geom = coarse_grain(p, geom, s)
+        weights, gamma2 = coarse_weights(weights, s, geom.det_shape), gamma2 * coarse_noise_factor(s)
+        vol_geom, volume = vol_geom.binned(s), None
+    g = geom.apply(poses)
+    fine = refined_grid(vol_geom, stage.oversample)
+    if volume is None or stage.oversample != 1:
+        volume = correlation_volume(p, vol_geom, g, stage.replace(reconstruct="fdk"))
+    res = p - forward(volume, fine, g)
     return _snr_of(p, res, weights), diagnose_residual(res, gamma2, weights)
 
 
@@ -416,13 +432,12 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     calibrated = geom.apply(poses)
     emit(dict(event="reconstruct", what="calibrated"))
     vol = reconstruct(p, vol_geom, calibrated)
-    # the fit is measured as the correlation measured it: on the last stage's grid (the
-    # interpolating projector on the user's grid is biased enough to rank a 0.02 px geometry
+    # the fit is measured as the correlation measured it: at the last stage's scale, on its grid
+    # (the interpolating projector on the user's grid is biased enough to rank a 0.02 px geometry
     # below a 0.16 px one: docs/method.md)
-    vg_fit = refined_grid(vol_geom, stages[-1].oversample)
     (snr_before, d0), (snr_after, d1) = (
-        _fit(p, vg_fit, g, weights, gamma2, v if vg_fit == vol_geom else None)
-        for g, v in ((geom, vol_initial), (calibrated, vol))
+        _fit(p, vol_geom, geom, q, weights, gamma2, stages[-1], v)
+        for q, v in ((Poses.identity(geom.n_views), vol_initial), (poses, vol))
     )
     diagnoses = (d0, d1)
     log.info("nominal geometry: %s", d0.describe())  # motion dominates here: informative only
@@ -464,8 +479,6 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
 
 def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend):
     """The model of the last stage that had to converge, measured at the poses kept, at that stage's scale."""
-    from ..correlation import coarse_grain, coarse_noise_factor, coarse_weights
-
     model = next((s for s in reversed(stages) if s.until == "converged"), stages[-1])
     s = model.scale
     try:

@@ -26,6 +26,7 @@ __all__ = [
     "StageError",
     "RECIPES",
     "RECONSTRUCTIONS",
+    "OVERSAMPLE_BY",
     "GUARDS",
     "recipe_stages",
     "jolt_stage",
@@ -38,6 +39,7 @@ __all__ = [
 #: Reconstructions of the correlation volume a stage can name.
 RECONSTRUCTIONS = ("fdk", "nonneg_ls", "cgls")
 #: Guards a stage can run before or after each round.
+OVERSAMPLE_BY = ("spline", "reconstruction")
 GUARDS = ("consistency", "entropy")
 #: The basis of a jolt stage: a step at each view whose fit stays poor after the previous stages.
 JOLT_BASIS = "jolt_steps"
@@ -81,6 +83,12 @@ class Stage:
         The data are coarse-grained ``scale`` x ``scale`` for this stage.
     oversample : int
         Correlation voxels are ``oversample`` x finer than the stage's grid.
+    oversample_by : {"spline", "reconstruction"}
+        How the FDK/FBP correlation volume reaches the finer grid:
+        ``"spline"`` reconstructs on the stage's grid and interpolates by
+        cubic B-splines (:func:`pdvc.recon.spline_upsample`; ``oversample³``
+        x cheaper); ``"reconstruction"`` back-projects on the fine grid.
+        ``nonneg_ls`` and ``cgls`` always solve on the fine grid.
     rounds : int
         Rounds (reconstruct, correlate, fix the gauge) at most.
     tol_px : float
@@ -103,7 +111,7 @@ class Stage:
         round, stop when the entropy of the stage's final-grid volume rises by
         more than ``entropy_tol`` over the lowest, keeping the poses before
         the last round.
-    max_iter, max_modes, pgd_passes, min_gain, noise_floor, rcond
+    max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
         The engine's options (:func:`pdvc.correlate`).
     """
 
@@ -115,6 +123,7 @@ class Stage:
     reconstruct: Any = "fdk"
     scale: int = 1
     oversample: int = 2
+    oversample_by: str = "reconstruction"
     rounds: int = 9
     tol_px: float = 0.01
     until: str = "converged"
@@ -123,6 +132,7 @@ class Stage:
     diverge_tol: float = 0.005
     entropy_tol: float = 0.003
     max_iter: int = 10
+    accelerate: bool = True
     max_modes: int = 5
     pgd_passes: int = 5
     min_gain: float = 0.01
@@ -140,7 +150,8 @@ class Stage:
             set_("basis", self.basis.strip().lower())
         elif not isinstance(self.basis, (TemporalBasis, np.ndarray)):
             raise StageError(f"{w}basis must be one of {BASIS_NAMES}, a TemporalBasis or an array, got {self.basis!r}")
-        for key, allowed in (("frame", ("sample", "lab")), ("method", ("full", "pgd")), ("until", ("converged", "rounds"))):
+        for key, allowed in (("frame", ("sample", "lab")), ("method", ("full", "pgd")), ("until", ("converged", "rounds")),
+                             ("oversample_by", OVERSAMPLE_BY)):
             if getattr(self, key) not in allowed:
                 raise StageError(f"{w}{key} must be one of {allowed}, got {getattr(self, key)!r}")
         fixed = (self.fixed,) if isinstance(self.fixed, str) else tuple(self.fixed)
@@ -168,6 +179,9 @@ class Stage:
             val = getattr(self, key)
             if not isinstance(val, (int, float, np.floating)) or isinstance(val, bool) or not (val >= 0):
                 raise StageError(f"{w}{key} must be a non-negative number, got {val!r}")
+        if not isinstance(self.accelerate, (bool, np.bool_)):
+            raise StageError(f"{w}accelerate must be true or false, got {self.accelerate!r}")
+        set_("accelerate", bool(self.accelerate))
         if self.stall_ratio is not None and not (isinstance(self.stall_ratio, (int, float)) and self.stall_ratio > 0):
             raise StageError(f"{w}stall_ratio must be a positive number or None, got {self.stall_ratio!r}")
 

@@ -102,20 +102,22 @@ that type needs) are required; everything else has the default shown.
     # max_outer = 10            # rounds per scale, warm-up included (precession, jolts: 8)
     # tol_px = 0.01             # a round moving sample points by less ends the stage (full-resolution px)
     # max_iter = 10             # Jacobian passes per correlation (per round)
+    # accelerate = true         # Anderson-accelerated Gauss-Newton steps (docs/method.md 5.6)
     # max_modes = 5             # PGD: modes at most
     # pgd_passes = 5            # PGD: alternating passes per mode
     # min_gain = 0.01           # PGD: stop when a mode lowers chi by less than this fraction
     # noise_floor = 1.05        # PGD: stop when chi falls below this
     # rcond = 1e-6              # eigenvalue ratio below which a direction is unobservable
     # oversample = 2            # correlation grid this many times finer than the reconstruction grid
+    # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper)
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
     warmup = 1                  # translation-only rounds before a model with free rotations, per scale
     # ... or the whole stage list, one table per stage (then no recipe parameter above):
     # [[calibration.stage]]
     # name = "warmup"           # every field of pdvc.calibration.Stage: name, basis, frame, fixed, method,
-    # basis = "drift"           # reconstruct, scale, oversample, rounds, tol_px, until ("converged" |
+    # basis = "drift"           # reconstruct, scale, oversample, oversample_by, rounds, tol_px, until ("converged" |
     # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
-    # fixed = ["rx", "ry", "rz"]  # max_iter, max_modes, pgd_passes, min_gain, noise_floor, rcond
+    # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
     # until = "rounds"
     # rounds = 1
     # run settings
@@ -361,12 +363,14 @@ class CalibrationConfig:
     warmup: int = 1
     tol_px: Optional[float] = None
     max_iter: Optional[int] = None
+    accelerate: Optional[bool] = None
     max_modes: Optional[int] = None
     pgd_passes: Optional[int] = None
     min_gain: Optional[float] = None
     noise_floor: Optional[float] = None
     rcond: Optional[float] = None
     oversample: Optional[int] = None
+    oversample_by: Optional[str] = None
     center: Optional[tuple[float, float, float]] = None
     fix_scale: bool = True
     backend: str = "auto"
@@ -771,7 +775,7 @@ _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
 
 _RECIPE_KEYS = (
     "basis", "method", "frame", "fixed", "reconstruct", "guards", "max_outer", "tol_px", "max_iter", "max_modes",
-    "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample",
+    "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample", "oversample_by", "accelerate",
 )
 
 
@@ -786,7 +790,7 @@ def _names(value, where: str, allowed, *, distinct=True) -> tuple:
 
 
 def _parse_calibration(t: _Table) -> CalibrationConfig:
-    from ..calibration import GUARDS, RECIPES, RECONSTRUCTIONS, StageError, stages_from_dicts
+    from ..calibration import GUARDS, OVERSAMPLE_BY, RECIPES, RECONSTRUCTIONS, StageError, stages_from_dicts
 
     w = "calibration."
     d = CalibrationConfig()
@@ -796,7 +800,8 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         if not is_basis_name(basis):
             raise ConfigError(f"calibration.basis must be one of {BASIS_NAMES} (D, M, N non-negative integers), got {_got(basis)}")
         kw["basis"] = basis.strip().lower()
-    for key, allowed in (("method", ("full", "pgd")), ("frame", ("sample", "lab")), ("reconstruct", RECONSTRUCTIONS)):
+    for key, allowed in (("method", ("full", "pgd")), ("frame", ("sample", "lab")), ("reconstruct", RECONSTRUCTIONS),
+                         ("oversample_by", OVERSAMPLE_BY)):
         val = t.pop(key)
         if val is not None:
             kw[key] = _choice(val, w + key, allowed)
@@ -816,6 +821,11 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         val = t.pop(key)
         if val is not None:
             kw[key] = _number(val, w + key, **rule)
+    accelerate = t.pop("accelerate")
+    if accelerate is not None:
+        if not isinstance(accelerate, bool):
+            raise ConfigError(f"calibration.accelerate must be true or false, got {_got(accelerate)}")
+        kw["accelerate"] = accelerate
     scales = t.pop("scales", d.scales)
     if scales == "auto":
         pass
