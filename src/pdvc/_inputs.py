@@ -6,7 +6,8 @@ integrals) and why, normalises them to line integrals, measures the air
 level (and subtracts it with ``[preprocess] air = "auto"``), applies the
 beam-hardening polynomial, builds the
 nominal geometry (circular cone/parallel, vector rows or a vendor file),
-crops the detector ROI, bins, and builds the reconstruction grid; it
+crops the detector ROI, bins (a large or binned scan is read, normalised and
+binned a chunk of views at a time: :mod:`pdvc.io._chunked`), and builds the reconstruction grid; it
 returns them with the engine options of ``[calibration]`` and the fully
 resolved configuration (what ``config.toml`` in the outputs holds).
 """
@@ -70,13 +71,19 @@ def counts_noise_variance(raw, p) -> float:
     """
     from .correlation import poisson_variance
 
+    i0, n_flats = _counts_i0(raw)
+    return float(np.mean(poisson_variance(p, i0=i0, n_flats=n_flats)))
+
+
+def _counts_i0(raw) -> tuple[float, int]:
+    """``(i0, n_flats)`` of :func:`counts_noise_variance` (a RawScan or a ProjectionSource)."""
     if not raw.is_raw or raw.flats is None:
         raise PdvcError("calibration.noise = 'counts' needs raw counts with flats ([data] flats or a file that holds them)")
     dark = 0.0 if raw.darks is None else raw.darks.mean(axis=0)
     i0 = float(np.mean(raw.flats.mean(axis=0) - dark))
     if not i0 > 0:
         raise PdvcError(f"calibration.noise = 'counts': the mean flat minus dark must be positive, got {i0:g}")
-    return float(np.mean(poisson_variance(p, i0=i0, n_flats=int(raw.flats.shape[0]))))
+    return i0, int(raw.flats.shape[0])
 
 
 def _vendor(cfg):
@@ -87,13 +94,27 @@ def _vendor(cfg):
     return None
 
 
-def load_scan(config, *, out_dir=None) -> Scan:
+def load_scan(config, *, out_dir=None, memory_budget: float | None = None, chunked: bool | None = None,
+              chunk_bytes: int | None = None) -> Scan:
     """Read and prepare everything a ``[data]``/``[geometry]``/``[volume]`` config describes.
 
     The notes say what was read and done: the data kind assumed and why, bad
     pixels interpolated, clipping, the air level (subtracted or not). Input
     problems (air level off 0, values that do not look like ``is_raw``
     says) are in ``Scan.problems`` and also as ``warning:`` notes.
+
+    Large scans
+    -----------
+    With ``[preprocess] bin > 1``, or when the float32 projections of the
+    full detector would exceed ``memory_budget`` bytes (default
+    :data:`pdvc.io._chunked.DEFAULT_MEMORY_BUDGET`, 2 GiB), the projections
+    are read, normalised, cropped and binned a chunk of views at a time
+    (:func:`pdvc.io._chunked.preprocess_chunked`): the full-size float32
+    stack never sits in memory, and the results equal the in-memory path's
+    to float rounding. ``chunked`` forces one path (True: chunks, False: in
+    memory); ``chunk_bytes`` sets the float32 bytes per chunk (default
+    128 MiB). ``Scan.raw`` is then the
+    :class:`pdvc.io._projections.ProjectionSource` (no ``data``).
     """
     from .io import (
         beam_hardening,
@@ -105,7 +126,9 @@ def load_scan(config, *, out_dir=None) -> Scan:
         read_projections,
         subtract_air,
     )
+    from .io._chunked import DEFAULT_CHUNK_BYTES, DEFAULT_MEMORY_BUDGET, preprocess_chunked
     from .io._config import build_geometry, build_volume_geometry, check_coverage, load_config
+    from .io._projections import open_projections, sample_view_indices
 
     cfg = load_config(config)
     d = cfg.data
@@ -117,8 +140,12 @@ def load_scan(config, *, out_dir=None) -> Scan:
         notes.append(f"warning: {text}")
         log.warning("%s", text)
 
-    raw = read_projections(
-        d.path,
+    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else memory_budget
+    if not (isinstance(budget, (int, float, np.integer, np.floating)) and budget > 0):
+        raise PdvcError(f"memory_budget must be a positive number of bytes, got {memory_budget!r}")
+    if chunked is not None and not isinstance(chunked, (bool, np.bool_)):
+        raise PdvcError(f"chunked must be None (decide), True or False, got {chunked!r}")
+    read_args = dict(
         fmt=d.format,
         flats=d.flats,
         darks=d.darks,
@@ -128,8 +155,21 @@ def load_scan(config, *, out_dir=None) -> Scan:
         bad_pixels=pp.mask,
         dead_columns=pp.dead_columns,
     )
+    if chunked is False:
+        use_chunks = False
+    else:
+        src = open_projections(d.path, **read_args)
+        full_bytes = 4 * src.n_views * src.det_shape[0] * src.det_shape[1]
+        use_chunks = bool(chunked) or pp.bin > 1 or full_bytes > budget
+    if use_chunks:
+        raw = src
+    elif chunked is None:  # opened already: read it whole
+        raw = src.to_raw()
+    else:
+        raw = read_projections(d.path, **read_args)
+    n_views, det_shape = raw.n_views, raw.det_shape
     words = {"counts": "raw counts", "transmission": "transmission (I/I0)", "line_integrals": "line integrals"}
-    notes.append(f"read {raw.format} {d.path}: {raw.data.shape[0]} views of {raw.data.shape[1]}x{raw.data.shape[2]} px, {words[raw.kind]}")
+    notes.append(f"read {raw.format} {d.path}: {n_views} views of {det_shape[0]}x{det_shape[1]} px, {words[raw.kind]}")
     n_bad = int(raw.metadata.get("bad_pixels", 0))
     if pp.mask is not None or pp.dead_columns is not None:
         notes.append(f"{n_bad} bad detector pixels ({raw.metadata.get('bad_pixels_source')}) interpolated along their rows")
@@ -143,32 +183,54 @@ def load_scan(config, *, out_dir=None) -> Scan:
     log.info("%s", kind_note)
     float_data = not np.issubdtype(np.dtype(raw.metadata.get("raw_dtype", "float32")), np.integer)
     if float_data and (d.is_raw != "auto" or raw.flats is not None):  # "auto" without flats: classified already
-        looks, why = classify_values(raw.data)
+        # classify_values looks at 64 evenly spaced views: the same ones in both paths
+        looks, why = classify_values(src.read_views(sample_view_indices(n_views)) if use_chunks else raw.data)
         if looks != raw.kind:
             said = "[data] is_raw says" if d.is_raw != "auto" else "with flats, taken as"
             warn(f"{said} {words[raw.kind]} but the values look like {words[looks]} ({why})")
+    open_beam = None
     if d.open_beam_columns is not None:
         a, b = d.open_beam_columns
-        raw = flats_from_columns(raw, columns=slice(a, b))
+        if use_chunks:
+            open_beam = (a, b)
+        else:
+            raw = flats_from_columns(raw, columns=slice(a, b))
         notes.append(f"flats from open-beam columns {a}..{b - 1}")
-    p, rep = normalize(raw, flat_interpolation=pp.flat_interpolation, clip_min=pp.clip_min)
+    counts_noise = cfg.calibration.noise == "counts"
+    if counts_noise and raw.kind != "counts":
+        raise PdvcError(f"calibration.noise = 'counts' needs raw counts with flats; these data are {words[raw.kind]}")
+    geom_unbinned = None
+    if use_chunks:
+        geom = _checked_geometry(build_geometry(cfg.geometry, n_views=n_views, det_shape=det_shape, data_angles=raw.angles),
+                                 (n_views,) + tuple(det_shape))
+        noise_i0 = None
+        if counts_noise:
+            if open_beam is not None:  # the flats are the open-beam columns: known after the first pass
+                raise PdvcError("calibration.noise = 'counts' with [data] open_beam_columns is not supported for a scan "
+                                "read in chunks ([preprocess] bin > 1 or a large scan); give flats, or set bin = 1")
+            noise_i0 = _counts_i0(raw)
+        ch = preprocess_chunked(
+            src, geom, scale=int(pp.bin), roi_rows=pp.roi_rows, roi_cols=pp.roi_cols,
+            flat_interpolation=pp.flat_interpolation, clip_min=pp.clip_min, subtract_air=pp.air == "auto",
+            beam_hardening=pp.beam_hardening, noise_i0=noise_i0, open_beam=open_beam,
+            chunk_bytes=DEFAULT_CHUNK_BYTES if chunk_bytes is None else chunk_bytes,
+        )
+        p, rep, air = ch.projections, ch.report, ch.air
+        gamma2_counts = ch.noise_variance
+    else:
+        p, rep = normalize(raw, flat_interpolation=pp.flat_interpolation, clip_min=pp.clip_min)
+        gamma2_counts = counts_noise_variance(raw, p) if counts_noise else None  # full resolution, before binning
+        air = estimate_air(p)
     n_clipped = int(getattr(rep, "n_clipped", 0))
     if n_clipped:
         notes.append(f"normalisation clipped {n_clipped} non-positive or tiny transmissions (clip_min {pp.clip_min:g})")
-    gamma2_counts = None
-    if cfg.calibration.noise == "counts":  # on the full-resolution line integrals, before binning
-        if raw.kind != "counts":
-            raise PdvcError(
-                f"calibration.noise = 'counts' needs raw counts with flats; these data are {words[raw.kind]}"
-            )
-        gamma2_counts = counts_noise_variance(raw, p)
-        if pp.bin > 1:
-            from .correlation import coarse_noise_factor
+    if gamma2_counts is not None and pp.bin > 1:
+        from .correlation import coarse_noise_factor
 
-            gamma2_counts *= coarse_noise_factor(int(pp.bin))
-    air = estimate_air(p)
+        gamma2_counts *= coarse_noise_factor(int(pp.bin))
     if pp.air == "auto":
-        p, air = subtract_air(p, air)
+        if not use_chunks:
+            p, air = subtract_air(p, air)
         if air.found:
             lo, hi = air.fitted_range
             notes.append(
@@ -183,23 +245,36 @@ def load_scan(config, *, out_dir=None) -> Scan:
         if air.problem() is not None:
             warn(air.problem())
     if pp.beam_hardening is not None:
-        p = beam_hardening(p, pp.beam_hardening)
+        if not use_chunks:
+            p = beam_hardening(p, pp.beam_hardening)
         notes.append(f"beam-hardening polynomial {list(pp.beam_hardening)}")
     vend = _vendor(cfg)
-    geom = build_geometry(cfg.geometry, n_views=p.shape[0], det_shape=p.shape[1:], data_angles=raw.angles)
-    if geom.n_views != p.shape[0] or tuple(geom.det_shape) != tuple(p.shape[1:]):
-        raise PdvcError(
-            f"the geometry describes {geom.n_views} views of {tuple(geom.det_shape)} px but the projections are "
-            f"{p.shape[0]} views of {tuple(p.shape[1:])} px; expected them to agree"
+    if use_chunks:
+        geom_roi = ch.geometry_roi
+        if pp.roi_rows is not None or pp.roi_cols is not None:
+            notes.append(f"detector ROI rows {pp.roi_rows}, cols {pp.roi_cols}: {geom_roi.det_shape[0]}x{geom_roi.det_shape[1]} px")
+        geom = ch.geometry
+        if pp.bin > 1:
+            geom_unbinned = geom_roi
+            notes.append(f"binned {pp.bin}x{pp.bin} (Gaussian then block mean); the geometry is also written for the full-resolution detector")
+        notes.append(
+            f"read in chunks of {ch.chunk_views} views ({ch.n_passes} pass{'es' if ch.n_passes > 1 else ''}, "
+            f"{ch.seconds:.1f} s, {ch.mb_per_s:.0f} MB/s): NaN/Inf, clipping and the noise from the counts counted "
+            f"over all views; the air level estimated on {ch.air.per_view.size} views x the detector rows "
+            f"estimate_air examines, as in memory; the data kind checked on "
+            f"{len(sample_view_indices(n_views))} evenly spaced views"
+            + ("; the air background subtracted after binning (binning is linear)" if ch.air_subtracted and ch.n_passes == 1 else "")
         )
-    if pp.roi_rows is not None or pp.roi_cols is not None:
-        p, geom = detector_roi(p, geom, rows=pp.roi_rows, cols=pp.roi_cols)
-        notes.append(f"detector ROI rows {pp.roi_rows}, cols {pp.roi_cols}: {p.shape[1]}x{p.shape[2]} px")
-    geom_unbinned = None
-    if pp.bin > 1:
-        geom_unbinned = geom
-        p, geom = coarse_grain(p, geom, int(pp.bin))
-        notes.append(f"binned {pp.bin}x{pp.bin} (Gaussian then block mean); the geometry is also written for the full-resolution detector")
+    else:
+        geom = _checked_geometry(build_geometry(cfg.geometry, n_views=p.shape[0], det_shape=p.shape[1:], data_angles=raw.angles),
+                                 p.shape)
+        if pp.roi_rows is not None or pp.roi_cols is not None:
+            p, geom = detector_roi(p, geom, rows=pp.roi_rows, cols=pp.roi_cols)
+            notes.append(f"detector ROI rows {pp.roi_rows}, cols {pp.roi_cols}: {p.shape[1]}x{p.shape[2]} px")
+        if pp.bin > 1:
+            geom_unbinned = geom
+            p, geom = coarse_grain(p, geom, int(pp.bin))
+            notes.append(f"binned {pp.bin}x{pp.bin} (Gaussian then block mean); the geometry is also written for the full-resolution detector")
     if p.shape[1] == 1:
         # the interpolating projectors need two rows: a one-row sinogram becomes two
         # identical rows half a pixel above and below it (a slab two voxels thick)
@@ -233,6 +308,16 @@ def load_scan(config, *, out_dir=None) -> Scan:
         air=air,
         geometry_unbinned=geom_unbinned,
     )
+
+
+def _checked_geometry(geom: VectorGeometry, shape) -> VectorGeometry:
+    """The geometry built from the config must describe the projections read."""
+    if geom.n_views != shape[0] or tuple(geom.det_shape) != tuple(shape[1:]):
+        raise PdvcError(
+            f"the geometry describes {geom.n_views} views of {tuple(geom.det_shape)} px but the projections are "
+            f"{shape[0]} views of {tuple(shape[1:])} px; expected them to agree"
+        )
+    return geom
 
 
 def inspect_scan(config) -> tuple[list, list]:

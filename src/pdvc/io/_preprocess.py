@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,15 +164,17 @@ class _GroupMeans:
     def __init__(self, flats: np.ndarray, groups: list[np.ndarray], dark: np.ndarray | float, keep: int = 2):
         self.flats, self.groups, self.dark, self.keep = flats, groups, dark, keep
         self.cache: dict[int, np.ndarray] = {}
+        self.lock = threading.Lock()
 
     def __call__(self, g: int) -> np.ndarray:
-        if g not in self.cache:
-            if len(self.cache) >= self.keep:
-                self.cache.pop(next(iter(self.cache)))
-            idx = self.groups[g]
-            mean = self.flats[idx[0]].astype(np.float64) if idx.size == 1 else self.flats[idx].mean(0, dtype=np.float64)
-            self.cache[g] = mean - self.dark
-        return self.cache[g]
+        with self.lock:  # the chunked reader normalises chunks in threads
+            if g not in self.cache:
+                if len(self.cache) >= self.keep:
+                    self.cache.pop(next(iter(self.cache)))
+                idx = self.groups[g]
+                mean = self.flats[idx[0]].astype(np.float64) if idx.size == 1 else self.flats[idx].mean(0, dtype=np.float64)
+                self.cache[g] = mean - self.dark
+            return self.cache[g]
 
 
 def _check_flats(means: _GroupMeans, n_groups: int, has_darks: bool) -> None:
@@ -237,85 +240,156 @@ def normalize(
     """
     if not isinstance(raw, RawScan):
         raise InputTypeError(f"raw must be a RawScan (see read_projections), got {type(raw).__name__}")
-    if flat_interpolation not in _INTERPOLATIONS:
-        raise DataError(f"flat_interpolation must be one of {_INTERPOLATIONS}, got {flat_interpolation!r}")
-    if not (isinstance(clip_min, (int, float, np.floating)) and 0 < clip_min < 1):
-        raise DataError(f"clip_min must be a number in (0, 1), got {clip_min!r}")
-    clip_min = float(clip_min)
-    kind = getattr(raw, "kind", "counts" if raw.is_raw else "line_integrals")
-    if not raw.is_raw:
-        report = PreprocessReport(False, flat_interpolation, "none", 0, 0, (), clip_min, 0, 0, 0.0, (), (), kind)
-        log.info("normalize: %s", report.summary())
-        return np.array(raw.data, dtype=np.float32, copy=True), report
-    transmission = kind == "transmission"
-    if transmission and raw.darks is not None:
-        raise DataError(
-            "transmission data (I/I0) are dark- and flat-corrected already: darks do not apply; "
-            "remove them, or set is_raw=True if the values are counts"
-        )
-    if raw.flats is None and not transmission:
-        raise DataError("raw counts need flats; pass flats= or set is_raw=False (or use flats_from_columns)")
+    norm = Normalizer(raw, flat_interpolation=flat_interpolation, clip_min=clip_min)
+    out = norm(raw.data)
+    return out, norm.report()
 
-    dark = raw.darks.mean(0, dtype=np.float64) if raw.darks is not None else 0.0
-    if raw.flats is None:  # transmission without flats: a unit flat
-        groups, positions = [np.arange(1)], None
-        means = _GroupMeans(np.ones((1,) + raw.det_shape, dtype=np.float32), groups, 0.0)
-    else:
-        groups, positions = _flat_groups(raw, flat_interpolation)
-        means = _GroupMeans(raw.flats, groups, dark)
-        _check_flats(means, len(groups), raw.darks is not None)
 
-    n_views = raw.n_views
-    out = np.empty(raw.data.shape, dtype=np.float32)
-    clipped_views, clipped_counts = [], []
-    n_clipped = n_nonpos = 0
-    for k in range(n_views):
-        if positions is None:
-            flat = means(0)
+class Normalizer:
+    """:func:`normalize` a chunk of views at a time (the chunked reader's path; ``normalize`` is one chunk).
+
+    Parameters
+    ----------
+    raw : RawScan or pdvc.io._projections.ProjectionSource
+        What the values are (``kind``, ``is_raw``), the flats, darks and flat
+        positions; the projections are passed to each call.
+    flat_interpolation, clip_min
+        As :func:`normalize`.
+
+    Calling it with ``(data, start)`` (views ``start .. start + len(data) - 1``)
+    returns their line integrals (float32, new array) and counts what was
+    clipped; :meth:`report` is the :class:`PreprocessReport` of every view
+    normalised so far. The flat of view ``k`` follows the flat groups and
+    their positions on the time line of the whole scan (``k`` is the global
+    view index), so chunks give what one call on the whole scan gives.
+
+    Raises
+    ------
+    DataError
+        As :func:`normalize` (raw counts without flats, flats not above the
+        darks, transmission with darks), when it is made.
+    """
+
+    def __init__(self, raw, *, flat_interpolation: str = "linear", clip_min: float = 1e-6):
+        if flat_interpolation not in _INTERPOLATIONS:
+            raise DataError(f"flat_interpolation must be one of {_INTERPOLATIONS}, got {flat_interpolation!r}")
+        if not (isinstance(clip_min, (int, float, np.floating)) and 0 < clip_min < 1):
+            raise DataError(f"clip_min must be a number in (0, 1), got {clip_min!r}")
+        self.flat_interpolation = flat_interpolation
+        self.clip_min = clip_min = float(clip_min)
+        self.kind = getattr(raw, "kind", "counts" if raw.is_raw else "line_integrals")
+        self.is_raw = bool(raw.is_raw)
+        self.flats_given = raw.flats is not None
+        self.n_flats = 0 if raw.flats is None else int(raw.flats.shape[0])
+        self.n_darks = 0 if raw.darks is None else int(raw.darks.shape[0])
+        self.clipped_views, self.clipped_counts = [], []
+        self.n_clipped = self.n_nonpos = self.n_pixels = 0
+        self.positions = None
+        if not self.is_raw:
+            return
+        transmission = self.kind == "transmission"
+        if transmission and raw.darks is not None:
+            raise DataError(
+                "transmission data (I/I0) are dark- and flat-corrected already: darks do not apply; "
+                "remove them, or set is_raw=True if the values are counts"
+            )
+        if raw.flats is None and not transmission:
+            raise DataError("raw counts need flats; pass flats= or set is_raw=False (or use flats_from_columns)")
+        self.dark = raw.darks.mean(0, dtype=np.float64) if raw.darks is not None else 0.0
+        if raw.flats is None:  # transmission without flats: a unit flat
+            groups, self.positions = [np.arange(1)], None
+            self.means = _GroupMeans(np.ones((1,) + tuple(raw.det_shape), dtype=np.float32), groups, 0.0)
         else:
-            j = int(np.searchsorted(positions, k, side="right"))  # positions[j-1] <= k < positions[j]
-            if j == 0:
-                flat = means(0)
-            elif j == positions.size:
-                flat = means(positions.size - 1)
-            else:
-                w = (k - positions[j - 1]) / (positions[j] - positions[j - 1])
-                flat = (1.0 - w) * means(j - 1) + w * means(j)
-        t = (raw.data[k] - dark) / flat
-        low = t < clip_min
-        n_low = int(np.count_nonzero(low))
-        if n_low:
-            n_nonpos += int(np.count_nonzero(t <= 0))
-            t[low] = clip_min
-            n_clipped += n_low
-            clipped_views.append(k)
-            clipped_counts.append(n_low)
-        out[k] = -np.log(t)
+            groups, self.positions = _flat_groups(raw, flat_interpolation)
+            self.means = _GroupMeans(raw.flats, groups, self.dark)
+            _check_flats(self.means, len(groups), raw.darks is not None)
 
-    report = PreprocessReport(
-        is_raw=True,
-        flat_interpolation=flat_interpolation,
-        flat_method="none" if raw.flats is None else ("mean" if positions is None else "linear"),
-        n_flats=0 if raw.flats is None else int(raw.flats.shape[0]),
-        n_darks=0 if raw.darks is None else int(raw.darks.shape[0]),
-        flat_group_positions=() if positions is None else tuple(float(p) for p in positions),
-        clip_min=clip_min,
-        n_clipped=n_clipped,
-        n_nonpositive=n_nonpos,
-        clipped_fraction=n_clipped / raw.data.size,
-        clipped_views=tuple(clipped_views),
-        clipped_counts=tuple(clipped_counts),
-        kind=kind,
-    )
-    if flat_interpolation == "linear" and positions is None and raw.flats is not None:
-        log.info("normalize: flat positions unknown or a single group; flats averaged")
-    if n_clipped:
-        log.warning(
-            "normalize: %d transmissions below clip_min=%g set to it (%d <= 0) in %d views, first view %d",
-            n_clipped, clip_min, n_nonpos, len(clipped_views), clipped_views[0],
+    def flat(self, k: int):
+        """Flat minus mean dark of view ``k`` (float64 image)."""
+        positions, means = self.positions, self.means
+        if positions is None:
+            return means(0)
+        j = int(np.searchsorted(positions, k, side="right"))  # positions[j-1] <= k < positions[j]
+        if j == 0:
+            return means(0)
+        if j == positions.size:
+            return means(positions.size - 1)
+        w = (k - positions[j - 1]) / (positions[j] - positions[j - 1])
+        return (1.0 - w) * means(j - 1) + w * means(j)
+
+    def __call__(self, data, start: int = 0, *, count: bool = True) -> np.ndarray:
+        """Line integrals of views ``start ..`` (``data`` not modified); ``count=False``: no clip counts kept."""
+        out, clipped = self.apply(data, start)
+        if count:
+            self.record(clipped, np.size(data))
+        return out
+
+    def apply(self, data, start: int = 0) -> tuple[np.ndarray, list]:
+        """Line integrals of views ``start ..`` and what was clipped, ``[(view, n_clipped, n_nonpositive)]``.
+
+        Changes nothing in ``self`` (threads may call it on different chunks); :meth:`record` the clipping
+        in view order for :meth:`report`.
+        """
+        data = np.asarray(data)
+        if not self.is_raw:
+            return np.array(data, dtype=np.float32, copy=True), []
+        clip_min = self.clip_min
+        out = np.empty(data.shape, dtype=np.float32)
+        clipped = []
+        for i in range(data.shape[0]):
+            k = start + i
+            t = np.subtract(data[i], self.dark, dtype=np.float64)  # (I - D) / (F - D), in place: no temporaries
+            np.divide(t, self.flat(k), out=t)
+            low = t < clip_min
+            n_low = int(np.count_nonzero(low))
+            if n_low:
+                clipped.append((k, n_low, int(np.count_nonzero(t <= 0))))
+                t[low] = clip_min
+            np.log(t, out=t)
+            np.negative(t, out=out[i], casting="same_kind")
+        return out, clipped
+
+    def record(self, clipped: list, n_pixels: int) -> None:
+        """Count the clipping :meth:`apply` returned for ``n_pixels`` more pixels (call in view order)."""
+        self.n_pixels += int(n_pixels)
+        for k, n_low, n_nonpos in clipped:
+            self.n_nonpos += n_nonpos
+            self.n_clipped += n_low
+            self.clipped_views.append(k)
+            self.clipped_counts.append(n_low)
+
+    def report(self) -> PreprocessReport:
+        """What was done to the views normalised so far (and logged, as :func:`normalize` does)."""
+        if not self.is_raw:
+            report = PreprocessReport(False, self.flat_interpolation, "none", 0, 0, (), self.clip_min, 0, 0, 0.0, (), (),
+                                      self.kind)
+            log.info("normalize: %s", report.summary())
+            return report
+        positions = self.positions
+        report = PreprocessReport(
+            is_raw=True,
+            flat_interpolation=self.flat_interpolation,
+            flat_method="none" if not self.flats_given else ("mean" if positions is None else "linear"),
+            n_flats=self.n_flats,
+            n_darks=self.n_darks,
+            flat_group_positions=() if positions is None else tuple(float(p) for p in positions),
+            clip_min=self.clip_min,
+            n_clipped=self.n_clipped,
+            n_nonpositive=self.n_nonpos,
+            clipped_fraction=self.n_clipped / max(self.n_pixels, 1),
+            clipped_views=tuple(self.clipped_views),
+            clipped_counts=tuple(self.clipped_counts),
+            kind=self.kind,
         )
-    log.info("normalize: %s", report.summary())
-    return out, report
+        if self.flat_interpolation == "linear" and positions is None and self.flats_given:
+            log.info("normalize: flat positions unknown or a single group; flats averaged")
+        if self.n_clipped:
+            log.warning(
+                "normalize: %d transmissions below clip_min=%g set to it (%d <= 0) in %d views, first view %d",
+                self.n_clipped, self.clip_min, self.n_nonpos, len(self.clipped_views), self.clipped_views[0],
+            )
+        log.info("normalize: %s", report.summary())
+        return report
 
 
 def _column_indices(value, n_cols: int, name: str) -> np.ndarray:
@@ -366,14 +440,8 @@ def flats_from_columns(raw: RawScan, columns=slice(0, 30)) -> RawScan:
         raise DataError(
             "flats_from_columns needs raw counts or transmission (raw.is_raw True); these are line integrals"
         )
-    n_cols = raw.det_shape[1]
-    if isinstance(columns, slice):
-        idx = np.arange(n_cols)[columns]
-    else:
-        idx = _column_indices(columns, n_cols, "columns")
-    if idx.size == 0:
-        raise DataError(f"columns must select at least one of the detector's {n_cols} columns, got {columns!r}")
-    per_view = raw.data[:, :, idx].mean(axis=2, dtype=np.float64).astype(np.float32)  # (n_views, n_rows)
+    idx = open_beam_columns(raw.det_shape[1], columns)
+    per_view = open_beam_means(raw.data, idx)  # (n_views, n_rows)
     flats = np.broadcast_to(per_view[:, :, None], raw.data.shape)
     if raw.flats is not None:
         log.info("flats_from_columns: the %d existing flats are replaced", raw.flats.shape[0])
@@ -383,6 +451,22 @@ def flats_from_columns(raw: RawScan, columns=slice(0, 30)) -> RawScan:
     return dataclasses.replace(
         raw, flats=flats, flat_positions=np.arange(raw.n_views, dtype=np.float64), metadata=meta
     )
+
+
+def open_beam_means(data, columns: np.ndarray) -> np.ndarray:
+    """Mean of each view's rows over the open-beam ``columns``: ``(n, n_rows)`` float32 (see flats_from_columns)."""
+    return np.asarray(data)[:, :, columns].mean(axis=2, dtype=np.float64).astype(np.float32)
+
+
+def open_beam_columns(n_cols: int, columns) -> np.ndarray:
+    """The column indices ``columns`` (slice or sequence) selects, checked as :func:`flats_from_columns` does."""
+    if isinstance(columns, slice):
+        idx = np.arange(n_cols)[columns]
+    else:
+        idx = _column_indices(columns, n_cols, "columns")
+    if idx.size == 0:
+        raise DataError(f"columns must select at least one of the detector's {n_cols} columns, got {columns!r}")
+    return idx
 
 
 def beam_hardening(p, coeffs) -> np.ndarray:
@@ -407,13 +491,23 @@ def beam_hardening(p, coeffs) -> np.ndarray:
         Coefficients not finite, empty, or giving a correction that is not
         increasing over the range of ``p`` (it would swap line integrals).
     """
-    c = np.asarray(coeffs, dtype=np.float64)
-    if c.ndim != 1 or c.size == 0 or not np.all(np.isfinite(c)):
-        raise DataError(f"coeffs must be a non-empty sequence of finite numbers (c_1, c_2, ...), got {coeffs!r}")
+    c = _bh_coefficients(coeffs)
     arr = np.asarray(p)
     if not np.issubdtype(arr.dtype, np.number) or arr.size == 0:
         raise InputTypeError(f"p must be a non-empty numeric array, got dtype {arr.dtype} and size {arr.size}")
-    lo, hi = float(np.min(arr)), float(np.max(arr))
+    _check_bh(c, float(np.min(arr)), float(np.max(arr)))
+    return _apply_bh(arr, c)
+
+
+def _bh_coefficients(coeffs) -> np.ndarray:
+    c = np.asarray(coeffs, dtype=np.float64)
+    if c.ndim != 1 or c.size == 0 or not np.all(np.isfinite(c)):
+        raise DataError(f"coeffs must be a non-empty sequence of finite numbers (c_1, c_2, ...), got {coeffs!r}")
+    return c
+
+
+def _check_bh(c: np.ndarray, lo: float, hi: float) -> None:
+    """The beam-hardening polynomial must increase over the range ``[lo, hi]`` of the line integrals."""
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise DataError("p must be finite to apply a beam-hardening correction")
     # derivative sum_i i c_i p**(i-1): positive at both ends and no real root inside [lo, hi]
@@ -429,6 +523,10 @@ def beam_hardening(p, coeffs) -> np.ndarray:
             f"coeffs {tuple(c.tolist())} do not give an increasing correction over the range of p "
             f"[{lo:.4g}, {hi:.4g}]: its derivative is <= 0 at p = {min(bad_at):.4g}"
         )
+
+
+def _apply_bh(arr: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``sum_i c_i arr**i`` (float32), unchecked."""
     acc = np.zeros(arr.shape, dtype=np.float64)
     x = arr.astype(np.float64)
     for ci in c[::-1]:  # Horner: ((c_m p + c_{m-1}) p + ...) p
@@ -487,10 +585,14 @@ def detector_roi(p, geom: VectorGeometry, rows=None, cols=None) -> tuple[np.ndar
     expected = (geom.n_views,) + tuple(geom.det_shape)
     if arr.shape != expected:
         raise ShapeError(f"p must have shape (n_views, n_rows, n_cols) = {expected} to match geom, got {arr.shape}")
-    r = _range(rows, geom.det_shape[0], "rows")
-    c = _range(cols, geom.det_shape[1], "cols")
+    r, c = roi_ranges(geom.det_shape, rows, cols)
     out = np.array(arr[:, r[0] : r[1], c[0] : c[1]], dtype=np.float32, copy=True)
     return out, geom.cropped(r, c)
+
+
+def roi_ranges(det_shape, rows=None, cols=None) -> tuple[tuple[int, int], tuple[int, int]]:
+    """``((r0, r1), (c0, c1))``: the detector window :func:`detector_roi` crops, checked the same way."""
+    return _range(rows, int(det_shape[0]), "rows"), _range(cols, int(det_shape[1]), "cols")
 
 
 # --------------------------------------------------------------------------- bad pixels
@@ -792,8 +894,7 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
     if degree < 0:
         raise DataError(f"degree must be >= 0, got {degree}")
     nv, nr, nc = arr.shape
-    n_rows_used = max(1, min(nr, int(max_rows), int(max_pixels) // max(nv * nc, 1)))
-    rows = np.unique(np.linspace(0, nr - 1, n_rows_used).round().astype(np.int64))
+    rows = air_rows(arr.shape, max_rows=max_rows, max_pixels=max_pixels)
     S = np.asarray(arr[:, rows, :], dtype=np.float64)
     if not np.all(np.isfinite(S)):
         raise DataError("p must be finite to estimate the air level")
@@ -866,6 +967,25 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
     )
 
 
+def air_rows(shape, *, max_rows: int = 16, max_pixels: int = 1_000_000) -> np.ndarray:
+    """The detector rows :func:`estimate_air` examines in line integrals of ``shape`` (n_views, n_rows, n_cols).
+
+    ``estimate_air`` of those rows alone (same ``max_rows``, ``max_pixels``)
+    is ``estimate_air`` of the whole stack: the chunked reader keeps only them.
+    """
+    nv, nr, nc = (int(v) for v in shape)
+    n_rows_used = max(1, min(nr, int(max_rows), int(max_pixels) // max(nv * nc, 1)))
+    return np.unique(np.linspace(0, nr - 1, n_rows_used).round().astype(np.int64))
+
+
+def subtract_background(arr, background, start: int = 0) -> np.ndarray:
+    """``arr[i] - background[start + i]`` row-broadcast, one view at a time (float32, new array)."""
+    out = np.empty(np.shape(arr), dtype=np.float32)
+    for i in range(out.shape[0]):  # one view at a time: no float64 copy of the stack
+        out[i] = arr[i] - background[start + i][None, :]
+    return out
+
+
 def subtract_air(p, estimate: AirEstimate | None = None, **kwargs) -> tuple[np.ndarray, AirEstimate]:
     """Subtract the air background ``o_k + P(c)`` so that the rays missing the sample read 0.
 
@@ -903,9 +1023,6 @@ def subtract_air(p, estimate: AirEstimate | None = None, **kwargs) -> tuple[np.n
     if not estimate.found:
         log.warning("subtract_air: no air found; nothing subtracted")
         return np.array(arr, dtype=np.float32, copy=True), estimate
-    bg = estimate.background()
-    out = np.empty(arr.shape, dtype=np.float32)
-    for k in range(arr.shape[0]):  # one view at a time: no float64 copy of the stack
-        out[k] = arr[k] - bg[k][None, :]
+    out = subtract_background(arr, estimate.background())
     log.info("subtract_air: %s", estimate.summary())
     return out, estimate

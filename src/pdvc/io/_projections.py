@@ -1,6 +1,9 @@
 """Reading projection data: TIFF folders and stacks, HDF5 (Data Exchange, NXtomo), ``.npy``.
 
-Every reader returns one :class:`RawScan`: the projections as float32
+Every reader returns one :class:`RawScan` (:func:`read_projections`), or a
+:class:`ProjectionSource` that reads the views a chunk at a time
+(:func:`open_projections`, for scans too large for memory as float32;
+:mod:`pdvc.io._chunked` normalises and bins them): the projections as float32
 ``(n_views, n_rows, n_cols)`` (``DESIGN.md`` §1), the flat and dark frames
 when there are any, the rotation angles in **radians** and a few facts about
 where it all came from. Nothing is normalised here; that is
@@ -66,6 +69,9 @@ from ..errors import InputTypeError, PdvcError, ShapeError
 __all__ = [
     "RawScan",
     "read_projections",
+    "ProjectionSource",
+    "open_projections",
+    "sample_view_indices",
     "classify_values",
     "DataError",
     "InputFileError",
@@ -120,6 +126,78 @@ def _listed(values, n_max: int = 8) -> str:
     return ", ".join(vals[:n_max]) + (f", ... ({len(vals)} in all)" if len(vals) > n_max else "")
 
 
+class _NonfiniteTally:
+    """NaN/Inf of a ``(n, n_rows, n_cols)`` stack, counted block by block (views in order).
+
+    :func:`_nonfinite_error` is one block; the chunked reader adds its chunks
+    one after the other and gets the same message as for the whole stack.
+    """
+
+    def __init__(self, det_shape: tuple[int, int]):
+        nr, nc = det_shape
+        self.n = 0
+        self.n_bad = 0
+        self.frames: list[np.ndarray] = []
+        self.pixels: list[str] = []
+        self.per_col = np.zeros(nc, dtype=np.int64)
+        self.per_row = np.zeros(nr, dtype=np.int64)
+        self.always = np.ones((nr, nc), dtype=bool)
+
+    def add(self, block: np.ndarray) -> int:
+        """Count the non-finite values of the next ``block`` of frames; returns how many it held."""
+        bad = ~np.isfinite(block)
+        n_bad = int(np.count_nonzero(bad))
+        start = self.n
+        self.n += int(block.shape[0])
+        if not n_bad:
+            self.always[...] = False
+            return 0
+        self.n_bad += n_bad
+        frames = np.flatnonzero(bad.reshape(bad.shape[0], -1).any(axis=1))
+        self.frames.append(frames + start)
+        for k in frames:
+            if len(self.pixels) >= 5:
+                break
+            for r, c in np.argwhere(bad[k])[: 5 - len(self.pixels)]:
+                self.pixels.append(f"({int(k) + start}, {int(r)}, {int(c)})")
+        self.per_col += bad.sum(axis=(0, 1))
+        self.per_row += bad.sum(axis=(0, 2))
+        self.always &= bad.all(axis=0)
+        return n_bad
+
+    def error(self, name: str, unit: str) -> DataError | None:
+        """The DataError for what was counted (see :func:`_nonfinite_error`), or None when all finite."""
+        if not self.n_bad:
+            return None
+        n, (nr, nc) = self.n, self.always.shape
+        frames = np.concatenate(self.frames)
+        per_col, per_row = self.per_col, self.per_row
+        dead_cols = np.flatnonzero(per_col >= 0.5 * n * nr)
+        dead_rows = np.flatnonzero(per_row >= 0.5 * n * nc) if nc > 1 else np.array([], dtype=int)
+        always = int(np.count_nonzero(self.always))
+        parts = [
+            f"{name} must be finite; it holds {self.n_bad} NaN/Inf values, the first in {unit} {int(frames[0])}",
+            f"{len(frames)} of {n} {unit}s hold some ({_listed(frames)})",
+            f"first at ({unit}, row, col) {', '.join(self.pixels)}",
+        ]
+        if dead_cols.size:
+            counts = ", ".join(f"{int(c)} ({int(per_col[c])} of {n * nr})" for c in dead_cols[:8])
+            parts.append(f"dead columns (non-finite in at least half of their pixels over all {unit}s): {counts}"
+                         + (f", ... ({dead_cols.size} in all)" if dead_cols.size > 8 else ""))
+        if dead_rows.size:
+            counts = ", ".join(f"{int(r)} ({int(per_row[r])} of {n * nc})" for r in dead_rows[:8])
+            parts.append(f"dead rows: {counts}" + (f", ... ({dead_rows.size} in all)" if dead_rows.size > 8 else ""))
+        if always:
+            parts.append(f"{always} detector pixels are non-finite in every {unit}")
+        hint = (
+            "mark the bad pixels (read_projections(bad_pixels=..., dead_columns=...), or in the config "
+            '[preprocess] mask = "mask.npy" (a detector-shaped 0/1 image, 1 = bad)'
+            + (f" or dead_columns = [{_listed(dead_cols, 20)}]" if dead_cols.size else " or dead_columns = [...]")
+            + "): they are then interpolated along the row from good neighbours"
+        )
+        return DataError("; ".join(parts) + ". To use the rest, " + hint)
+
+
 def _nonfinite_error(arr: np.ndarray, name: str, unit: str) -> DataError | None:
     """A DataError naming where the NaN/Inf of a ``(n, n_rows, n_cols)`` stack are, or None when all finite.
 
@@ -127,44 +205,11 @@ def _nonfinite_error(arr: np.ndarray, name: str, unit: str) -> DataError | None:
     in <unit> K"``) and adds the frames, the first pixels ``(frame, row, col)``, the dead columns and rows
     (non-finite in at least half of their pixels over all frames) and how to mask them.
     """
-    bad = ~np.isfinite(arr)
-    n_bad = int(np.count_nonzero(bad))
-    if not n_bad:
-        return None
-    n, nr, nc = bad.shape
-    frames = np.flatnonzero(bad.reshape(n, -1).any(axis=1))
-    pixels = []
-    for k in frames[:5]:
-        for r, c in np.argwhere(bad[k])[: 5 - len(pixels)]:
-            pixels.append(f"({int(k)}, {int(r)}, {int(c)})")
-        if len(pixels) >= 5:
-            break
-    per_col = bad.sum(axis=(0, 1))  # over frames and rows
-    per_row = bad.sum(axis=(0, 2))
-    dead_cols = np.flatnonzero(per_col >= 0.5 * n * nr)
-    dead_rows = np.flatnonzero(per_row >= 0.5 * n * nc) if nc > 1 else np.array([], dtype=int)
-    always = int(np.count_nonzero(bad.all(axis=0)))
-    parts = [
-        f"{name} must be finite; it holds {n_bad} NaN/Inf values, the first in {unit} {int(frames[0])}",
-        f"{len(frames)} of {n} {unit}s hold some ({_listed(frames)})",
-        f"first at ({unit}, row, col) {', '.join(pixels)}",
-    ]
-    if dead_cols.size:
-        counts = ", ".join(f"{int(c)} ({int(per_col[c])} of {n * nr})" for c in dead_cols[:8])
-        parts.append(f"dead columns (non-finite in at least half of their pixels over all {unit}s): {counts}"
-                     + (f", ... ({dead_cols.size} in all)" if dead_cols.size > 8 else ""))
-    if dead_rows.size:
-        counts = ", ".join(f"{int(r)} ({int(per_row[r])} of {n * nc})" for r in dead_rows[:8])
-        parts.append(f"dead rows: {counts}" + (f", ... ({dead_rows.size} in all)" if dead_rows.size > 8 else ""))
-    if always:
-        parts.append(f"{always} detector pixels are non-finite in every {unit}")
-    hint = (
-        "mark the bad pixels (read_projections(bad_pixels=..., dead_columns=...), or in the config "
-        '[preprocess] mask = "mask.npy" (a detector-shaped 0/1 image, 1 = bad)'
-        + (f" or dead_columns = [{_listed(dead_cols, 20)}]" if dead_cols.size else " or dead_columns = [...]")
-        + "): they are then interpolated along the row from good neighbours"
-    )
-    return DataError("; ".join(parts) + ". To use the rest, " + hint)
+    if 0 in arr.strides and arr.size:  # a broadcast (e.g. flats_from_columns): check its distinct values only
+        arr = arr[tuple(slice(0, 1) if st == 0 else slice(None) for st in arr.strides)]
+    tally = _NonfiniteTally(arr.shape[1:])
+    tally.add(arr)
+    return tally.error(name, unit)
 
 
 def _check_frames(arr, name: str, det_shape: tuple[int, int], what: str) -> np.ndarray:
@@ -183,12 +228,25 @@ def _check_frames(arr, name: str, det_shape: tuple[int, int], what: str) -> np.n
 # --------------------------------------------------------------------------- what the values are
 
 
-def _value_sample(arr: np.ndarray, max_views: int = 64, max_rows: int = 64, max_cols: int = 512) -> np.ndarray:
+_SAMPLE_VIEWS = 64  # views that classify_values looks at (evenly spaced)
+
+
+def _strided(n: int, m: int) -> np.ndarray:
+    """``min(n, m)`` indices evenly spaced over ``0 .. n - 1`` (rounded, unique)."""
+    return np.unique(np.linspace(0, n - 1, min(n, m)).round().astype(np.int64))
+
+
+def sample_view_indices(n_views: int) -> np.ndarray:
+    """The views :func:`classify_values` looks at in a stack of ``n_views``: it gives the same answer
+    on those views alone (what the chunked reader reads instead of the whole scan)."""
+    return _strided(int(n_views), _SAMPLE_VIEWS)
+
+
+def _value_sample(arr: np.ndarray, max_views: int = _SAMPLE_VIEWS, max_rows: int = 64, max_cols: int = 512) -> np.ndarray:
     """Finite values of an evenly strided subset of a (n_views, n_rows, n_cols) stack, float64, flat."""
     a = np.asarray(arr)
     if a.ndim == 3:
-        idx = [np.unique(np.linspace(0, n - 1, min(n, m)).round().astype(np.int64))
-               for n, m in zip(a.shape, (max_views, max_rows, max_cols))]
+        idx = [_strided(n, m) for n, m in zip(a.shape, (max_views, max_rows, max_cols))]
         a = a[np.ix_(*idx)]
     s = np.asarray(a, dtype=np.float64).reshape(-1)
     if s.size > 2_000_000:
@@ -279,6 +337,36 @@ def classify_values(values) -> tuple[str, str]:
     return "line_integrals", f"values not those of counts or transmission ({span}, {where}){extra}: line integrals"
 
 
+def _check_parts(det_shape, n_views, flats, darks, angles, flat_positions):
+    """Flats, darks (float32, finite, detector-shaped), angles (float64, one per view) and flat positions, checked."""
+    if flats is not None:
+        flats = _check_frames(flats, "flats", det_shape, "flats")
+    if darks is not None:
+        darks = _check_frames(darks, "darks", det_shape, "darks")
+    if angles is not None:
+        ang = np.asarray(angles, dtype=np.float64)
+        if ang.shape != (n_views,):
+            raise ShapeError(
+                f"angles must have shape (n_views,) = ({n_views},), one per view of data, got {ang.shape}"
+            )
+        if not np.all(np.isfinite(ang)):
+            raise DataError(f"angles must be finite; {int(np.sum(~np.isfinite(ang)))} are NaN/Inf")
+        angles = ang
+    if flat_positions is not None:
+        if flats is None:
+            raise ShapeError("flat_positions were given but there are no flats")
+        pos = np.asarray(flat_positions, dtype=np.float64)
+        if pos.shape != (flats.shape[0],):
+            raise ShapeError(
+                f"flat_positions must have shape (n_flats,) = ({flats.shape[0]},), "
+                f"one per flat, got {pos.shape}"
+            )
+        if not np.all(np.isfinite(pos)):
+            raise DataError("flat_positions must be finite")
+        flat_positions = pos
+    return flats, darks, angles, flat_positions
+
+
 @dataclass(frozen=True, eq=False)
 class RawScan:
     """Projections as read from disk, before any normalisation.
@@ -347,31 +435,9 @@ class RawScan:
             raise err
         det_shape = (int(data.shape[1]), int(data.shape[2]))
         object.__setattr__(self, "data", data)
-        if self.flats is not None:
-            object.__setattr__(self, "flats", _check_frames(self.flats, "flats", det_shape, "flats"))
-        if self.darks is not None:
-            object.__setattr__(self, "darks", _check_frames(self.darks, "darks", det_shape, "darks"))
-        if self.angles is not None:
-            ang = np.asarray(self.angles, dtype=np.float64)
-            if ang.shape != (data.shape[0],):
-                raise ShapeError(
-                    f"angles must have shape (n_views,) = ({data.shape[0]},), one per view of data, got {ang.shape}"
-                )
-            if not np.all(np.isfinite(ang)):
-                raise DataError(f"angles must be finite; {int(np.sum(~np.isfinite(ang)))} are NaN/Inf")
-            object.__setattr__(self, "angles", ang)
-        if self.flat_positions is not None:
-            if self.flats is None:
-                raise ShapeError("flat_positions were given but there are no flats")
-            pos = np.asarray(self.flat_positions, dtype=np.float64)
-            if pos.shape != (self.flats.shape[0],):
-                raise ShapeError(
-                    f"flat_positions must have shape (n_flats,) = ({self.flats.shape[0]},), "
-                    f"one per flat, got {pos.shape}"
-                )
-            if not np.all(np.isfinite(pos)):
-                raise DataError("flat_positions must be finite")
-            object.__setattr__(self, "flat_positions", pos)
+        parts = _check_parts(det_shape, data.shape[0], self.flats, self.darks, self.angles, self.flat_positions)
+        for name, value in zip(("flats", "darks", "angles", "flat_positions"), parts):
+            object.__setattr__(self, name, value)
         if self.is_raw is not None and not isinstance(self.is_raw, (bool, np.bool_)):
             raise InputTypeError(f"is_raw must be a bool, got {self.is_raw!r}")
         kind = self.kind
@@ -472,26 +538,134 @@ def _list_tiffs(folder: Path, pattern: str | None, name: str) -> list[Path]:
     return sorted(files, key=_natural_key)
 
 
+class _Views:
+    """Views of a stack read on demand: ``shape`` ``(n_views, n_rows, n_cols)``, the file ``dtype``, and
+    ``take(indices)`` -> float32 ``(len(indices), n_rows, n_cols)``. Subclasses read one format."""
+
+    shape: tuple
+    dtype: np.dtype
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def take(self, indices) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def _runs(indices: np.ndarray):
+    """``(position in indices, first, stop)`` of each run of consecutive indices."""
+    i = 0
+    while i < indices.size:
+        j = i + 1
+        while j < indices.size and indices[j] == indices[j - 1] + 1:
+            j += 1
+        yield i, int(indices[i]), int(indices[j - 1]) + 1
+        i = j
+
+
+class _ArrayViews(_Views):
+    """Views of an array (in memory or ``np.load(mmap_mode="r")``): contiguous runs are sliced."""
+
+    def __init__(self, arr: np.ndarray):
+        self.arr, self.shape, self.dtype = arr, tuple(arr.shape), arr.dtype
+
+    def take(self, indices) -> np.ndarray:
+        idx = np.asarray(indices, dtype=np.int64)
+        out = np.empty((idx.size,) + self.shape[1:], dtype=np.float32)
+        for i, a, b in _runs(idx):
+            out[i : i + b - a] = self.arr[a:b]
+        return out
+
+
+class _TiffFolderViews(_Views):
+    """One 2D TIFF file per view, read file by file."""
+
+    def __init__(self, files: list, name: str):
+        self.files, self.name = files, name
+        first = _read_tiff_file(files[0], name)
+        if first.ndim != 2:
+            raise ShapeError(
+                f"{name}: each file of a TIFF folder must hold one 2D image, but {files[0].name!r} "
+                f"has shape {first.shape}; pass the file path itself to read a multi-page stack"
+            )
+        self.shape, self.dtype = (len(files),) + first.shape, first.dtype
+
+    def take(self, indices) -> np.ndarray:
+        idx = np.asarray(indices, dtype=np.int64)
+        out = np.empty((idx.size,) + self.shape[1:], dtype=np.float32)
+        for j, k in enumerate(idx):
+            f = self.files[k]
+            img = _read_tiff_file(f, self.name)
+            if img.shape != self.shape[1:]:
+                raise ShapeError(
+                    f"{self.name}: every image of a TIFF folder must have the shape of the first "
+                    f"({self.files[0].name!r}: {self.shape[1:]}); {f.name!r} has shape {img.shape}"
+                )
+            out[j] = img
+        return out
+
+
+class _TiffPageViews(_Views):
+    """A multi-page TIFF whose pages are the views, read page by page."""
+
+    def __init__(self, path: Path, n_pages: int, page_shape: tuple, dtype, name: str):
+        self.path, self.name = path, name
+        self.shape, self.dtype = (n_pages,) + tuple(page_shape), np.dtype(dtype)
+
+    def take(self, indices) -> np.ndarray:
+        import tifffile
+
+        idx = np.asarray(indices, dtype=np.int64)
+        out = np.empty((idx.size,) + self.shape[1:], dtype=np.float32)
+        try:
+            with tifffile.TiffFile(self.path) as tf:
+                for j, k in enumerate(idx):
+                    out[j] = tf.pages[int(k)].asarray()
+        except Exception as exc:
+            raise InputFileError(f"{self.name} file {str(self.path)!r} could not be read as TIFF: {exc}") from exc
+        return out
+
+
+class _H5Views(_Views):
+    """Frames of an HDF5 dataset (the projections among them), read by slices of views."""
+
+    def __init__(self, path: Path, dataset: str, frames: np.ndarray, frame_shape: tuple, dtype):
+        self.path, self.dataset, self.frames = path, dataset, np.asarray(frames, dtype=np.int64)
+        self.shape, self.dtype = (self.frames.size,) + tuple(frame_shape), np.dtype(dtype)
+
+    def take(self, indices) -> np.ndarray:
+        import h5py
+
+        idx = self.frames[np.asarray(indices, dtype=np.int64)]
+        out = np.empty((idx.size,) + self.shape[1:], dtype=np.float32)
+        with h5py.File(self.path, "r") as h5:
+            ds = h5[self.dataset]
+            for i, a, b in _runs(idx):
+                out[i : i + b - a] = ds[a:b]
+        return out
+
+
+def _tiff_pages(path: Path, name: str) -> _TiffPageViews | None:
+    """Page-by-page views of a multi-page TIFF whose pages are 2D images of one shape, else None."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            pages = tf.pages
+            n = len(pages)
+            first = pages[0]
+            if n < 2 or len(first.shape) != 2:
+                return None
+            return _TiffPageViews(path, n, first.shape, first.dtype, name)
+    except Exception as exc:
+        raise InputFileError(f"{name} file {str(path)!r} could not be read as TIFF: {exc}") from exc
+
+
 def _read_tiff_folder(folder: Path, pattern: str | None, name: str) -> tuple[np.ndarray, list[Path], np.dtype]:
     """Every TIFF of a folder (natural order) stacked (float32) along a new first axis, and the files' dtype."""
-    files = _list_tiffs(folder, pattern, name)
-    first = _read_tiff_file(files[0], name)
-    if first.ndim != 2:
-        raise ShapeError(
-            f"{name}: each file of a TIFF folder must hold one 2D image, but {files[0].name!r} "
-            f"has shape {first.shape}; pass the file path itself to read a multi-page stack"
-        )
-    out = np.empty((len(files),) + first.shape, dtype=np.float32)
-    out[0] = first
-    for k, f in enumerate(files[1:], start=1):
-        img = _read_tiff_file(f, name)
-        if img.shape != first.shape:
-            raise ShapeError(
-                f"{name}: every image of a TIFF folder must have the shape of the first "
-                f"({files[0].name!r}: {first.shape}); {f.name!r} has shape {img.shape}"
-            )
-        out[k] = img
-    return out, files, first.dtype
+    views = _TiffFolderViews(_list_tiffs(folder, pattern, name), name)
+    return views.take(np.arange(views.shape[0])), views.files, views.dtype
 
 
 def _read_npy(path: Path, name: str) -> np.ndarray:
@@ -643,7 +817,7 @@ def _nx_get(group, candidates):
     return None, None
 
 
-def _read_nxtomo(h5, entry_path: str, path: Path) -> dict:
+def _read_nxtomo(h5, entry_path: str, path: Path, lazy: bool = False) -> dict:
     import h5py
 
     entry = h5[entry_path]
@@ -660,7 +834,7 @@ def _read_nxtomo(h5, entry_path: str, path: Path) -> dict:
             f"NXtomo entry {entry_path!r} of {str(path)!r} has no frames: expected instrument/detector/data "
             f"or data/data"
         )
-    frames = np.asarray(data_ds[()])
+    frames = data_ds if lazy else np.asarray(data_ds[()])
     if frames.ndim != 3:
         raise ShapeError(
             f"NXtomo {entry_path}/{data_at} must be 3D (n_frames, n_rows, n_cols), got shape {frames.shape}"
@@ -714,10 +888,14 @@ def _read_nxtomo(h5, entry_path: str, path: Path) -> dict:
         units = _decode(ang_ds.attrs["units"]) if "units" in ang_ds.attrs else None
         angles, units_read = _angles_to_radians(values[proj], units, f"NXtomo {entry_path}/{ang_at}")
         meta["angle_units"] = units_read
+    def take(sel):  # h5py reads an increasing index list; an array takes a boolean mask
+        return np.asarray(frames[np.flatnonzero(sel)]) if lazy else frames[sel]
+
+    data = _H5Views(path, data_ds.name, np.flatnonzero(proj), frames.shape[1:], frames.dtype) if lazy else frames[proj]
     return {
-        "data": frames[proj],
-        "flats": frames[flat] if np.any(flat) else None,
-        "darks": frames[dark] if np.any(dark) else None,
+        "data": data,
+        "flats": take(flat) if np.any(flat) else None,
+        "darks": take(dark) if np.any(dark) else None,
         "angles": angles,
         "flat_positions": flat_positions,
         "counts": True if np.any(flat) else None,
@@ -725,7 +903,7 @@ def _read_nxtomo(h5, entry_path: str, path: Path) -> dict:
     }
 
 
-def _read_dxchange(h5, path: Path, dataset: str | None) -> dict:
+def _read_dxchange(h5, path: Path, dataset: str | None, lazy: bool = False) -> dict:
     import h5py
 
     if dataset is None:
@@ -741,7 +919,10 @@ def _read_dxchange(h5, path: Path, dataset: str | None) -> dict:
         )
     grp = h5[group_path]
     ds = grp[data_name]
-    frames = np.asarray(ds[()])
+    if lazy and ds.ndim == 3:
+        frames = _H5Views(path, ds.name, np.arange(ds.shape[0]), ds.shape[1:], ds.dtype)
+    else:
+        frames = np.asarray(ds[()])
     meta: dict = {"hdf5_data": ds.name, "raw_dtype": str(frames.dtype)}
     units = _decode(ds.attrs["units"]).strip().lower() if "units" in ds.attrs else ""
     if units:
@@ -770,7 +951,7 @@ def _read_dxchange(h5, path: Path, dataset: str | None) -> dict:
     }
 
 
-def _read_hdf5(path: Path, fmt: str, dataset: str | None) -> tuple[dict, str]:
+def _read_hdf5(path: Path, fmt: str, dataset: str | None, lazy: bool = False) -> tuple[dict, str]:
     import h5py
 
     try:
@@ -788,22 +969,22 @@ def _read_hdf5(path: Path, fmt: str, dataset: str | None) -> tuple[dict, str]:
             if fmt == "nxtomo" or (fmt == "auto" and isinstance(obj, h5py.Group) and obj.name in entries):
                 if not isinstance(obj, h5py.Group):
                     raise FormatError(f"dataset must name the NXtomo entry group with fmt='nxtomo', got {dataset!r}")
-                return _read_nxtomo(h5, obj.name, path), "nxtomo"
-            return _read_dxchange(h5, path, dataset), "dxchange"
+                return _read_nxtomo(h5, obj.name, path, lazy), "nxtomo"
+            return _read_dxchange(h5, path, dataset, lazy), "dxchange"
         if fmt in ("auto", "nxtomo"):
             if len(entries) > 1:
                 raise FormatError(
                     f"{str(path)!r} holds {len(entries)} NXtomo entries {entries}; choose one with dataset="
                 )
             if len(entries) == 1:
-                return _read_nxtomo(h5, entries[0], path), "nxtomo"
+                return _read_nxtomo(h5, entries[0], path, lazy), "nxtomo"
             if fmt == "nxtomo":
                 raise FormatError(
                     f"{str(path)!r} has no NXtomo entry (an NXentry whose definition is 'NXtomo'); "
                     f"pass dataset= with the entry path"
                 )
         if fmt == "dxchange" or "exchange" in h5:
-            return _read_dxchange(h5, path, None), "dxchange"
+            return _read_dxchange(h5, path, None, lazy), "dxchange"
         raise FormatError(
             f"{str(path)!r} is HDF5 but neither Data Exchange (exchange/data) nor NeXus NXtomo; "
             f"top-level members are {sorted(h5.keys())}; pass dataset= with the path of the projections"
@@ -933,6 +1114,46 @@ def read_projections(
     ...                        angles=np.arange(360) * 0.5)    # doctest: +SKIP
     >>> p, report = normalize(raw)                              # doctest: +SKIP
     """
+    views, head = _open(
+        path, fmt=fmt, flats=flats, darks=darks, angles=angles, sinogram=sinogram, is_raw=is_raw,
+        dataset=dataset, flat_positions=flat_positions, bad_pixels=bad_pixels, dead_columns=dead_columns, lazy=False,
+    )
+    data = np.array(views, dtype=np.float32, copy=True)
+    mask = head.pop("mask")
+    if mask is not None:
+        from ._preprocess import fill_bad_pixels
+
+        data = fill_bad_pixels(data, mask)
+    scan = RawScan(data=data, **head)
+    _log_read(scan.source, scan.format, scan.n_views, scan.det_shape, scan.kind, scan.flats, scan.darks,
+              scan.metadata["angles_source"])
+    return scan
+
+
+def _log_read(source, fmt, n_views, det_shape, kind, fl, dk, ang_desc) -> None:
+    log.info(
+        "read %s (%s): %d views of %d x %d, %s, %s flats, %s darks, angles %s",
+        source,
+        fmt,
+        n_views,
+        det_shape[0],
+        det_shape[1],
+        _KIND_WORDS[kind],
+        0 if fl is None else fl.shape[0],
+        0 if dk is None else dk.shape[0],
+        ang_desc or "none",
+    )
+
+
+def _open(path, *, fmt, flats, darks, angles, sinogram, is_raw, dataset, flat_positions, bad_pixels, dead_columns,
+          lazy: bool):
+    """Everything :func:`read_projections` reads but the projections: ``(views, header)``.
+
+    ``views``: the projections as read (an array, or with ``lazy`` a :class:`_Views` that reads them on
+    demand where the format allows it); ``header``: the other :class:`RawScan` fields and ``mask``, the bad
+    pixels to fill in the projections (None when none). Flats and darks are read and filled; the kind is
+    decided (from the views :func:`sample_view_indices` names when the values must tell).
+    """
     if fmt != "auto" and fmt not in _FORMATS:
         raise FormatError(f"fmt must be 'auto' or one of {_FORMATS}, got {fmt!r}")
     if not isinstance(path, (str, os.PathLike)):
@@ -955,7 +1176,7 @@ def read_projections(
     parts: dict = {"flats": None, "darks": None, "angles": None, "flat_positions": None, "counts": None}
     meta: dict = {}
     if detected in ("hdf5", "dxchange", "nxtomo"):
-        hparts, out_fmt = _read_hdf5(Path(path_str), "auto" if detected == "hdf5" else detected, dataset)
+        hparts, out_fmt = _read_hdf5(Path(path_str), "auto" if detected == "hdf5" else detected, dataset, lazy)
         parts.update(hparts)
         meta.update(hparts["metadata"])
         raw_arr = parts["data"]
@@ -966,7 +1187,11 @@ def read_projections(
         _check_path_exists(folder, "path")
         if not folder.is_dir():
             raise FormatError(f"fmt='tiff-folder' needs a folder or a glob, got the file {path_str!r}")
-        raw_arr, files, file_dtype = _read_tiff_folder(folder, pattern, "path")
+        if lazy and not sinogram:
+            raw_arr = _TiffFolderViews(_list_tiffs(folder, pattern, "path"), "path")
+            files, file_dtype = raw_arr.files, raw_arr.dtype
+        else:
+            raw_arr, files, file_dtype = _read_tiff_folder(folder, pattern, "path")
         meta.update(n_files=len(files), first_file=files[0].name, last_file=files[-1].name)
         meta["raw_dtype"] = str(file_dtype)
         # a folder of 2D images: each file is one view, or one sinogram (row) with sinogram=True
@@ -975,7 +1200,7 @@ def read_projections(
     elif detected == "tiff":
         p = Path(path_str)
         _check_path_exists(p, "path")
-        raw_arr = _read_tiff_file(p, "path")
+        raw_arr = (_tiff_pages(p, "path") if lazy and not sinogram else None) or _read_tiff_file(p, "path")
         meta["raw_dtype"] = str(raw_arr.dtype)
         raw_arr = _shape_data(raw_arr, sinogram=sinogram, allow_single_2d=True, source=path_str)
         out_fmt = "tiff"
@@ -988,9 +1213,8 @@ def read_projections(
         out_fmt = "npy"
     meta.setdefault("raw_dtype", str(raw_arr.dtype))
     integer_input = np.issubdtype(np.dtype(meta["raw_dtype"]), np.integer)
-    data = np.array(raw_arr, dtype=np.float32, copy=True)
-    det_shape = (int(data.shape[1]), int(data.shape[2]))
-    n_views = int(data.shape[0])
+    det_shape = (int(raw_arr.shape[1]), int(raw_arr.shape[2]))
+    n_views = int(raw_arr.shape[0])
 
     fl, fl_desc = _frames_from(flats, "flats", det_shape)
     if fl is None and parts["flats"] is not None:
@@ -1025,13 +1249,15 @@ def read_projections(
                 f"flat_positions must hold one value per flat: expected shape ({fl.shape[0]},), got {positions.shape}"
             )
 
+    mask = None
     if bad_pixels is not None or dead_columns is not None:
         from ._preprocess import bad_pixel_mask, fill_bad_pixels
 
         mask, mask_desc = bad_pixel_mask(det_shape, bad_pixels, dead_columns)
         n_masked = int(np.count_nonzero(mask))
+        if not n_masked:
+            mask = None
         if n_masked:
-            data = fill_bad_pixels(data, mask)
             fl = None if fl is None else fill_bad_pixels(fl, mask)
             dk = None if dk is None else fill_bad_pixels(dk, mask)
         meta["bad_pixels"] = n_masked
@@ -1046,7 +1272,7 @@ def read_projections(
         elif integer_input:
             kind, reason = "counts", f"integer data ({meta['raw_dtype']})"
         else:
-            kind, why = classify_values(data)
+            kind, why = classify_values(_filled_views(raw_arr, sample_view_indices(n_views), mask))
             reason = f"float data without flats: {why}"
         log.info("data taken as %s (%s); pass is_raw= to override", _KIND_WORDS[kind], reason)
     else:
@@ -1061,8 +1287,7 @@ def read_projections(
     meta["flats_source"] = fl_desc
     meta["darks_source"] = dk_desc
 
-    scan = RawScan(
-        data=data,
+    head = dict(
         flats=fl,
         darks=dk,
         angles=ang,
@@ -1071,17 +1296,140 @@ def read_projections(
         format=out_fmt,
         metadata=meta,
         kind=kind,
+        mask=mask,
     )
-    log.info(
-        "read %s (%s): %d views of %d x %d, %s, %s flats, %s darks, angles %s",
-        path_str,
-        out_fmt,
-        n_views,
-        det_shape[0],
-        det_shape[1],
-        _KIND_WORDS[scan.kind],
-        0 if fl is None else fl.shape[0],
-        0 if dk is None else dk.shape[0],
-        ang_desc or "none",
+    return raw_arr, head
+
+
+def _filled_views(views, indices, mask) -> np.ndarray:
+    """Views ``indices`` of an array or :class:`_Views`, float32, bad pixels filled."""
+    sub = views.take(indices) if isinstance(views, _Views) else np.asarray(views[np.asarray(indices)], dtype=np.float32)
+    if mask is None:
+        return sub
+    from ._preprocess import fill_bad_pixels
+
+    return fill_bad_pixels(sub, mask)
+
+
+@dataclass(frozen=True, eq=False)
+class ProjectionSource:
+    """A scan opened for reading its views a chunk at a time (:func:`open_projections`).
+
+    Everything :class:`RawScan` holds except the projections: flats and darks
+    (read, bad pixels filled, checked), angles (radians), flat positions,
+    ``kind``, ``source``, ``format``, ``metadata``; and ``read(start, stop)``,
+    which reads views ``start .. stop - 1`` as float32 with the bad pixels
+    filled. The values are not checked for NaN/Inf here (the chunked reader
+    counts them chunk by chunk and raises :class:`RawScan`'s error at the end).
+
+    Attributes
+    ----------
+    views : object
+        The reader: TIFF files one by one, the pages of a multi-page TIFF, an
+        HDF5 dataset by slices, or an array (``.npy`` memory-mapped, or data
+        that had to be read whole: sinogram-major TIFF).
+    mask : (n_rows, n_cols) bool array or None
+        Bad pixels filled in every view read.
+    """
+
+    views: object
+    flats: np.ndarray | None = None
+    darks: np.ndarray | None = None
+    angles: np.ndarray | None = None
+    flat_positions: np.ndarray | None = None
+    kind: str = "counts"
+    source: str = "<memory>"
+    format: str = "memory"
+    metadata: dict = field(default_factory=dict)
+    mask: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        views = self.views
+        if not isinstance(views, _Views):
+            views = np.asarray(views) if not isinstance(views, np.ndarray) else views
+            if views.ndim != 3 or min(views.shape) < 1:
+                raise ShapeError(f"views must have shape (n_views, n_rows, n_cols) with every size >= 1, got {views.shape}")
+            views = _ArrayViews(views)
+            object.__setattr__(self, "views", views)
+        if self.kind not in _KINDS:
+            raise InputTypeError(f"kind must be one of {_KINDS}, got {self.kind!r}")
+        parts = _check_parts(self.det_shape, self.n_views, self.flats, self.darks, self.angles, self.flat_positions)
+        for name, value in zip(("flats", "darks", "angles", "flat_positions"), parts):
+            object.__setattr__(self, name, value)
+
+    @property
+    def n_views(self) -> int:
+        return int(self.views.shape[0])
+
+    @property
+    def det_shape(self) -> tuple[int, int]:
+        return int(self.views.shape[1]), int(self.views.shape[2])
+
+    @property
+    def is_raw(self) -> bool:
+        """As :attr:`RawScan.is_raw`: False exactly for line integrals."""
+        return self.kind != "line_integrals"
+
+    @property
+    def raw_itemsize(self) -> int:
+        """Bytes per value in the file (2 for uint16)."""
+        return int(np.dtype(self.metadata.get("raw_dtype", "float32")).itemsize)
+
+    def read_views(self, indices) -> np.ndarray:
+        """Views ``indices`` (increasing), float32 ``(len(indices), n_rows, n_cols)``, bad pixels filled."""
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.n_views):
+            raise ShapeError(f"indices must lie in 0 .. {self.n_views - 1}, got {idx.min()} .. {idx.max()}")
+        return _filled_views(self.views, idx, self.mask)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Views ``start .. stop - 1``, float32, bad pixels filled."""
+        if not 0 <= start < stop <= self.n_views:
+            raise ShapeError(f"start, stop must satisfy 0 <= start < stop <= {self.n_views}, got {start}, {stop}")
+        return self.read_views(np.arange(start, stop))
+
+    def to_raw(self) -> RawScan:
+        """Every view read: the :class:`RawScan` :func:`read_projections` gives for the same arguments."""
+        return RawScan(
+            data=self.read(0, self.n_views), flats=self.flats, darks=self.darks, angles=self.angles,
+            flat_positions=self.flat_positions, source=self.source, format=self.format, metadata=self.metadata,
+            kind=self.kind,
+        )
+
+
+def open_projections(
+    path,
+    *,
+    fmt: str = "auto",
+    flats=None,
+    darks=None,
+    angles=None,
+    sinogram: bool = False,
+    is_raw: bool | str | None = None,
+    dataset: str | None = None,
+    flat_positions=None,
+    bad_pixels=None,
+    dead_columns=None,
+) -> ProjectionSource:
+    """Open projections for reading a chunk of views at a time; parameters as :func:`read_projections`.
+
+    Reads the flats, darks, angles and what the file says about itself, and
+    decides what the values are exactly as :func:`read_projections` does
+    (from the views :func:`sample_view_indices` names, when the values must
+    tell), but not the projections: TIFF folders are then read file by file,
+    multi-page TIFFs page by page, HDF5 (NXtomo, Data Exchange) by slices of
+    views, ``.npy`` through a memory map. Sinogram-major TIFFs are read whole.
+
+    Returns
+    -------
+    ProjectionSource
+        ``read(start, stop)`` gives views as float32 with bad pixels filled.
+    """
+    views, head = _open(
+        path, fmt=fmt, flats=flats, darks=darks, angles=angles, sinogram=sinogram, is_raw=is_raw,
+        dataset=dataset, flat_positions=flat_positions, bad_pixels=bad_pixels, dead_columns=dead_columns, lazy=True,
     )
-    return scan
+    src = ProjectionSource(views=views, **head)
+    _log_read(src.source, src.format, src.n_views, src.det_shape, src.kind, src.flats, src.darks,
+              src.metadata["angles_source"])
+    return src
