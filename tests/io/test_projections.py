@@ -215,6 +215,7 @@ def test_missing_path_and_unknown_format(tmp_path):
     with pytest.raises(InputFileError, match="does not exist") as exc:
         read_projections(tmp_path / "missing.tif")
     assert isinstance(exc.value, FileNotFoundError)
+    assert str(exc.value).startswith("path '") and "path path" not in str(exc.value)
     (tmp_path / "scan.raw").write_bytes(b"\0" * 64)
     with pytest.raises(FormatError, match=r"not a supported projection format.*'\.raw'"):
         read_projections(tmp_path / "scan.raw")

@@ -501,7 +501,8 @@ def _angles_to_radians(values: np.ndarray, units: str | None, name: str) -> tupl
 
 def _check_path_exists(path: Path, name: str) -> None:
     if not path.exists():
-        raise InputFileError(f"{name} path {str(path)!r} does not exist")
+        what = name if name.endswith("path") else f"{name} path"  # never "path path"
+        raise InputFileError(f"{what} {str(path)!r} does not exist")
 
 
 def _read_tiff_file(path: Path, name: str) -> np.ndarray:
