@@ -36,7 +36,8 @@ from ..recon import cgls, fbp, fdk, nonneg_ls, refined_grid, spline_upsample
 from ..status import Status
 from ._stages import JOLT_BASIS, Stage, StageError
 
-__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "jolt_views"]
+__all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
+           "jolt_views"]
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -151,6 +152,16 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
     return cgls(projections, fine, geom)
 
 
+def data_at_scale(projections, geom: VectorGeometry, vol_geom: VolumeGeometry, weights, gamma2: float, s: int):
+    """(projections, geometry, grid, weights, γ²) of a run at scale ``s``: coarse-grained (``s`` = 1: as given)."""
+    if s == 1:
+        p, g, vg = projections, geom, vol_geom
+    else:
+        p, g = coarse_grain(projections, geom, s)
+        vg = vol_geom.binned(s)
+    return p, g, vg, coarse_weights(weights, s, g.det_shape), gamma2 * coarse_noise_factor(s)
+
+
 def _final_reconstruction(stage: Stage):
     """The stage's reconstruction on a grid given (the entropy guard's volume)."""
     return stage.reconstruct if callable(stage.reconstruct) else reconstruct
@@ -176,14 +187,8 @@ class _Context:
     def at_scale(self, s: int):
         """(projections, geometry, grid, weights, γ²) at scale ``s``, made once."""
         if s not in self._scaled:
-            if s == 1:
-                p, g, vg = self.p, self.geom, self.vol_geom
-            else:
-                p, g = coarse_grain(self.p, self.geom, s)
-                vg = self.vol_geom.binned(s)
-            w = coarse_weights(self.weights, s, g.det_shape)
             self._scaled = {k: v for k, v in self._scaled.items() if k < s}  # finer scales never go back up
-            self._scaled[s] = (p, g, vg, w, self.gamma2 * coarse_noise_factor(s))
+            self._scaled[s] = data_at_scale(self.p, self.geom, self.vol_geom, self.weights, self.gamma2, s)
         return self._scaled[s]
 
     def gauge(self, poses: Poses) -> Poses:

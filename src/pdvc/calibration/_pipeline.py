@@ -25,16 +25,13 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..compute import current_session, scheduler_keyword
-from ..correlation import (
-    Assessment, assess, coarse_grain, coarse_noise_factor, coarse_volume, coarse_weights, estimate_noise_variance,
-    shannon_entropy, snr_db,
-)
+from ..correlation import Assessment, assess, coarse_volume, estimate_noise_variance, shannon_entropy, snr_db
 from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._driver import PosesResult, correlation_volume, reconstruct, refined_grid, run_stages
+from ._driver import PosesResult, correlation_volume, data_at_scale, reconstruct, refined_grid, run_stages
 from ._outer import gauge_text
 from ._stages import Stage, StageError, recipe_stages
 
@@ -405,23 +402,18 @@ def _truncation(mode, weights, geom, vol_geom, vol_initial):
     return w, found
 
 
-def _fit(p, vol_geom, geom, poses, weights, gamma2, stage: Stage, volume=None):
-    """Per-view SNR and residual diagnosis of ``p`` against FDK/FBP with ``geom`` posed by ``poses``.
+def _fit(scaled, poses, stage: Stage, volume=None):
+    """Per-view SNR and residual diagnosis of the data against FDK/FBP with the geometry posed by ``poses``.
 
-    Measured as ``stage`` correlates: on its scale's data (coarse-grained) and
-    its correlation grid; ``volume`` (on the user's grid) is reused when that
-    is the same grid.
+    Measured as ``stage`` correlates: on ``scaled``, its scale's
+    :func:`data_at_scale`, and its correlation grid; ``volume`` (on the
+    user's grid) is reused when that is the same grid.
     """
-    s = stage.scale
-    if s > 1:
-        p, geom = coarse_grain(p, geom, s)
-        weights, gamma2 = coarse_weights(weights, s, geom.det_shape), gamma2 * coarse_noise_factor(s)
-        vol_geom, volume = vol_geom.binned(s), None
+    p, geom, vol_geom, weights, gamma2 = scaled
     g = geom.apply(poses)
-    fine = refined_grid(vol_geom, stage.oversample)
-    if volume is None or stage.oversample != 1:
+    if volume is None or stage.scale != 1 or stage.oversample != 1:
         volume = correlation_volume(p, vol_geom, g, stage.replace(reconstruct="fdk"))
-    res = p - forward(volume, fine, g)
+    res = p - forward(volume, refined_grid(vol_geom, stage.oversample), g)
     return _snr_of(p, res, weights), diagnose_residual(res, gamma2, weights)
 
 
@@ -435,9 +427,9 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     # the fit is measured as the correlation measured it: at the last stage's scale, on its grid
     # (the interpolating projector on the user's grid is biased enough to rank a 0.02 px geometry
     # below a 0.16 px one: docs/method.md)
+    scaled = data_at_scale(p, geom, vol_geom, weights, gamma2, stages[-1].scale)  # once for both fits and the assessment
     (snr_before, d0), (snr_after, d1) = (
-        _fit(p, vol_geom, geom, q, weights, gamma2, stages[-1], v)
-        for q, v in ((Poses.identity(geom.n_views), vol_initial), (poses, vol))
+        _fit(scaled, q, stages[-1], v) for q, v in ((Poses.identity(geom.n_views), vol_initial), (poses, vol))
     )
     diagnoses = (d0, d1)
     log.info("nominal geometry: %s", d0.describe())  # motion dominates here: informative only
@@ -466,7 +458,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         log.warning("motion summary unavailable: %s", exc)
     emit(dict(event="assess"))
     t0 = time.perf_counter()
-    assessment = _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend)
+    assessment = _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled)
     timings["assess"] = time.perf_counter() - t0
     return CalibrationResult(
         geometry=calibrated, nominal=geom, poses=poses, assessment=assessment, history=drv.history, stages=tuple(stages),
@@ -477,17 +469,16 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     )
 
 
-def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend):
-    """The model of the last stage that had to converge, measured at the poses kept, at that stage's scale."""
+def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled):
+    """The model of the last stage that had to converge, measured at the poses kept, at that stage's scale.
+
+    ``scaled`` is the data at the last stage's scale (reused when the model's scale is the same).
+    """
     model = next((s for s in reversed(stages) if s.until == "converged"), stages[-1])
     s = model.scale
     try:
-        if s == 1:
-            data, g, v, vg, w, g2 = p, geom, vol, vol_geom, weights, gamma2
-        else:
-            data, g = coarse_grain(p, geom, s)
-            v, vg = coarse_volume(vol, vol_geom, s)
-            w, g2 = coarse_weights(weights, s, g.det_shape), gamma2 * coarse_noise_factor(s)
+        data, g, _, w, g2 = scaled if s == stages[-1].scale else data_at_scale(p, geom, vol_geom, weights, gamma2, s)
+        v, vg = (vol, vol_geom) if s == 1 else coarse_volume(vol, vol_geom, s)
         return assess(
             v, vg, data, g, poses, basis=model.basis, frame=model.frame, fixed=model.fixed, center=center, weights=w,
             noise_variance=g2, times=times, rcond=model.rcond, backend=backend,

@@ -823,9 +823,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
             kw[key] = _number(val, w + key, **rule)
     accelerate = t.pop("accelerate")
     if accelerate is not None:
-        if not isinstance(accelerate, bool):
-            raise ConfigError(f"calibration.accelerate must be true or false, got {_got(accelerate)}")
-        kw["accelerate"] = accelerate
+        kw["accelerate"] = _boolean(accelerate, w + "accelerate")
     scales = t.pop("scales", d.scales)
     if scales == "auto":
         pass
