@@ -75,6 +75,8 @@ NOISE_I0 = (2e3, 2e4, 2e5)
 SIZES = {
     "tiny": dict(n=24, views=(48,), cases=3),
     "quick": dict(n=40, views=(90, 120, 180), cases=12),
+    # detectors of 110 x 129 px: the default recipe runs two scales (2 -> 1), which n=40 and n=64 do not
+    "scales": dict(n=92, views=(90, 120, 180), cases=8),
     "full": dict(n=64, views=(90, 180, 360, 720), cases=48),
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
@@ -420,6 +422,8 @@ def main(argv=None) -> int:
     size = ap.add_mutually_exclusive_group()
     size.add_argument("--tiny", dest="size", action="store_const", const="tiny", help="3 cases, n=24, 48 views (smoke test)")
     size.add_argument("--quick", dest="size", action="store_const", const="quick", help="12 cases, n=40, <=180 views")
+    size.add_argument("--scales", dest="size", action="store_const", const="scales",
+                      help="8 cases, n=92, <=180 views: detectors large enough for two scales (2 -> 1)")
     ap.set_defaults(size="full")
     ap.add_argument("--split", choices=("tuning", "heldout", "all"), default="heldout",
                     help="even seeds tune, odd seeds are held out (default: report the held-out set)")

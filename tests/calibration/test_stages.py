@@ -72,6 +72,9 @@ def test_default_recipe_is_a_warmup_then_the_model_at_each_scale():
     assert model.until == "converged" and model.guards == ("consistency",)
     big = recipe_stages("default", (1024, 1024))
     assert [s.scale for s in big] == [4, 4, 2, 2, 2]
+    # the finer scale refines: its model stops at the first fresh reconstruction that fits worse
+    assert [s.diverge_tol for s in big if s.name == "model"] == [Stage().diverge_tol, 0.0]
+    assert all(s.diverge_tol == 0.01 for s in recipe_stages("default", (1024, 1024), diverge_tol=0.01) if s.name == "model")
     assert len(recipe_stages("default", (76, 89), jolts=False)) == 2
 
 

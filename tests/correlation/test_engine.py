@@ -12,6 +12,7 @@ import pytest
 
 import pdvc
 from pdvc.correlation import CorrelationError, correlate, lab_to_sample_map
+from pdvc.status import Status
 from pdvc.geometry import reprojection_error, sample_points
 from pdvc.projectors import forward
 
@@ -220,6 +221,25 @@ def test_anderson_acceleration_solves_a_slow_linear_iteration():
     assert np.linalg.norm(x - x_star) < 1e-9
     aa.reset()
     assert np.allclose(aa.step(x, f(x)), f(x))  # after a reset: the plain step
+
+
+def test_max_start_chi_stops_after_the_first_pass_only_when_chi_is_above_it(setup):
+    """Above the limit: one pass, poses unchanged, CONSISTENCY_GUARD; at or below it: the run without a limit."""
+    vg, vol, geom, angles = setup
+    rng = np.random.default_rng(5)
+    t = rng.normal(0, 0.4, (geom.n_views, 3))
+    data = _data(vol, vg, geom, np.zeros((geom.n_views, 3)), t)
+    kw = dict(basis="constant", noise_variance=1e-4, max_iter=8)
+    free = correlate(vol, vg, data, geom, **kw)
+    chi0 = float(free.chi_history[0])
+    stopped = correlate(vol, vg, data, geom, max_start_chi=0.999 * chi0, **kw)
+    assert stopped.status == Status.CONSISTENCY_GUARD and stopped.n_iter == 1
+    assert np.array_equal(stopped.rotvecs, np.zeros((geom.n_views, 3))) and not np.any(stopped.translations)
+    assert stopped.chi_history.tolist() == [chi0] and np.all(np.isnan(stopped.std))
+    same = correlate(vol, vg, data, geom, max_start_chi=chi0, **kw)
+    assert same.n_iter == free.n_iter and np.array_equal(same.params, free.params)
+    with pytest.raises(CorrelationError, match="max_start_chi"):
+        correlate(vol, vg, data, geom, max_start_chi=chi0, scales=(2, 1), **kw)
 
 
 def test_acceleration_reaches_the_plain_solution_in_fewer_passes(setup):

@@ -383,12 +383,14 @@ class _StageRun:
         p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
         vg_c = refined_grid(vg, st.oversample)
         vol = correlation_volume(p, vg, g.apply(self.poses), st)
+        # a fresh reconstruction that already fits worse than the best ends the stage: measure nothing more
+        limit = self.best[0] * (1 + st.diverge_tol) if "consistency" in st.guards and self.best is not None else None
         return correlate(
             vol, vg_c, p, g, basis=self.basis, frame=st.frame, fixed=st.fixed, method=st.method, center=ctx.center,
             weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
             max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
-            noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend,
+            noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend, max_start_chi=limit,
         )
 
     def _record(self, r, res, chi_before, entropy, inc, inc_max):

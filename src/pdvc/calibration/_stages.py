@@ -106,7 +106,8 @@ class Stage:
     guards : tuple of str
         ``"consistency"``: stop when the data consistency of a fresh
         reconstruction rises by more than ``diverge_tol`` over the best of the
-        stage, keeping the best poses (``CONSISTENCY_GUARD``, a success; or
+        stage (0: at all; a round whose fresh reconstruction fits worse is
+        then not measured), keeping the best poses (``CONSISTENCY_GUARD``, a success; or
         ``DIVERGED`` when no round beat the stage's starting poses). ``"entropy"``: before each
         round, stop when the entropy of the stage's final-grid volume rises by
         more than ``entropy_tol`` over the lowest, keeping the poses before
@@ -170,15 +171,16 @@ class Stage:
             if not isinstance(val, (int, np.integer)) or isinstance(val, bool) or val < lo:
                 raise StageError(f"{w}{key} must be an int >= {lo}, got {val!r}")
             set_(key, int(val))
-        for key in ("tol_px", "diverge_tol", "entropy_tol", "rcond"):
+        for key in ("tol_px", "entropy_tol", "rcond"):
             val = getattr(self, key)
             if not isinstance(val, (int, float, np.floating)) or isinstance(val, bool) or not (val > 0):
                 raise StageError(f"{w}{key} must be a positive number, got {val!r}")
             set_(key, float(val))
-        for key in ("min_gain", "noise_floor"):
+        for key in ("diverge_tol", "min_gain", "noise_floor"):
             val = getattr(self, key)
             if not isinstance(val, (int, float, np.floating)) or isinstance(val, bool) or not (val >= 0):
                 raise StageError(f"{w}{key} must be a non-negative number, got {val!r}")
+            set_(key, float(val))
         if not isinstance(self.accelerate, (bool, np.bool_)):
             raise StageError(f"{w}accelerate must be true or false, got {self.accelerate!r}")
         set_("accelerate", bool(self.accelerate))
@@ -251,6 +253,9 @@ def auto_scales(det_shape) -> tuple:
         return (2, 1)
     return (1,)
 
+
+# diverge_tol of the model stage at the scales after the first (the finest scales refine)
+FINER_SCALE_DIVERGE_TOL = 0.0
 
 # the model stage of each recipe, before the user's overrides
 _RECIPE_MODEL = {
@@ -326,12 +331,15 @@ def recipe_stages(
     spec = dict(_RECIPE_MODEL[recipe])
     spec.update({k: v for k, v in model.items() if v is not None})
     base = Stage(name="model", rounds=1, **spec)
+    # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
+    # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
+    refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
     stages = []
-    for s in sched:
+    for j, s in enumerate(sched):
         n_warm = min(warmup, n_outer - 1) if base.frees_rotation else 0
         if n_warm:
             stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
-        stages.append(base.replace(scale=s, rounds=n_outer - n_warm))
+        stages.append(base.replace(scale=s, rounds=n_outer - n_warm, **(refine if j > 0 else {})))
     if recipe == "default" and jolts:
         stages.append(jolt_stage(stages[-1]))
     return tuple(stages)

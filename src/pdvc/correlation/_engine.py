@@ -352,6 +352,7 @@ def correlate(
     scales=(1,),
     backend: str = "auto",
     callback: Optional[Callable[[dict], None]] = None,
+    max_start_chi: Optional[float] = None,
 ) -> CorrelationResult:
     """Find the rigid pose of the sample at every view from its projections.
 
@@ -417,12 +418,20 @@ def correlate(
     callback : callable, optional
         Called with a dict (iteration, chi, snr, step_px, mu) after each
         iteration.
+    max_start_chi : float, optional
+        Return after the first pass, poses unchanged and status
+        ``CONSISTENCY_GUARD``, when χ at the starting poses is above it
+        (the calibration driver's consistency guard: a round whose fresh
+        reconstruction already fits worse than the best is not measured).
+        Single scale only.
 
     Returns
     -------
     CorrelationResult
     """
     sched = _check_scales(scales)
+    if max_start_chi is not None and sched != (1,):
+        raise CorrelationError("max_start_chi needs a single scale (scales=(1,))")
     if sched != (1,):
         return _correlate_multiscale(
             sched,
@@ -459,7 +468,11 @@ def correlate(
     snr_hist = [_overall_snr(red)]
     log.info("correlate: start chi = %.4g, SNR = %.2f dB, noise variance %.3g", chi_hist[0], snr_hist[0], gamma2)
 
-    if method == "full":
+    if max_start_chi is not None and chi_hist[0] > max_start_chi:
+        log.info("correlate: start chi %.5g above max_start_chi %.5g; not measured", chi_hist[0], max_start_chi)
+        status, var, obs = Status.CONSISTENCY_GUARD, np.full((n, int(prob.free.sum())), np.nan), Observability()
+        modes, mode_table = (), ()
+    elif method == "full":
         rv, t, red, status, var, obs, it = _run_full(
             prob, basis_obj, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rcond, callback, accelerate=bool(accelerate)
         )
