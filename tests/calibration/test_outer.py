@@ -175,9 +175,12 @@ def test_a_refinement_that_finds_nothing_better_keeps_the_converged_poses(small_
     c = small_case
     calls = []
 
+    volumes = []
+
     def worse_and_worse(p, vg, g):
         calls.append(g)
-        return fdk(p, vg, g) * (1.0 + 0.5 * (len(calls) - 1))
+        volumes.append(fdk(p, vg, g) * (1.0 + 0.5 * (len(calls) - 1)))
+        return volumes[-1]
 
     first = Stage(name="model", basis="constant", frame="lab", fixed=("rx", "ry", "rz"), rounds=6, tol_px=0.05)  # converges
     second = first.replace(name="refine", reconstruct=worse_and_worse, rounds=4, tol_px=1e-9)
@@ -207,6 +210,8 @@ def test_a_refinement_that_finds_nothing_better_keeps_the_converged_poses(small_
     assert len(refine_rounds) == 1  # the first refinement round was recorded; the second's chi_before rose
     # the poses kept are those the first stage converged to: the geometry of the first refinement call
     assert c.scan.geometry.apply(drv.poses) == calls[0]
+    # and the volume reconstructed there is handed on (the check against nominal reuses it)
+    assert drv.fit_volume[0] is drv.poses and drv.fit_volume[1] is second and drv.fit_volume[2] is volumes[0]
     # alone (nothing converged before it), the same stage diverges
     calls.clear()
     alone = run_stages(c.scan.projections, c.scan.geometry, c.vol_geom, [second],

@@ -244,3 +244,28 @@ def test_correlation_volume_by_spline_is_the_upsampled_stage_reconstruction():
     # the two fine volumes describe the same object: close, not equal
     assert by_spline.shape == direct.shape == refined_grid(vg, 2).shape
     assert np.linalg.norm(by_spline - direct) < 0.2 * np.linalg.norm(direct)
+
+
+def test_the_check_against_nominal_reuses_a_volume_only_when_it_is_the_one_it_would_make():
+    """``_fit`` takes a driver's ``fit_volume`` for the same poses (identity), grid and FDK; else it reconstructs."""
+    from pdvc.calibration import correlation_volume
+    from pdvc.calibration._driver import data_at_scale
+    from pdvc.calibration._pipeline import _fit
+    from pdvc.geometry import Poses
+    from tests.correlation.cases import make_case
+
+    c = make_case("offset", n=24, n_views=48)
+    p, g, vg = c.scan.projections, c.scan.geometry, c.vol_geom
+    st = Stage(oversample=2)
+    scaled = data_at_scale(p, g, vg, None, 1e-3, 1)
+    n = g.n_views
+    poses = Poses(np.zeros((n, 3)), np.tile([0.3, 0.0, 0.1], (n, 1)))
+    made = correlation_volume(p, vg, g.apply(poses), st)
+    own = _fit(scaled, poses, st)[0]
+    np.testing.assert_array_equal(_fit(scaled, poses, st, made=(poses, st, made))[0], own)
+    blank = np.zeros_like(made)  # a volume that fits nothing: shows whether it was used
+    assert np.mean(_fit(scaled, poses, st, made=(poses, st, blank))[0]) < np.mean(own) - 5  # 0 dB: residual = data
+    for other in ((Poses(poses.rotvecs.copy(), poses.translations.copy()), st), (poses, st.replace(oversample=1)),
+                  (poses, st.replace(reconstruct="cgls")), (poses, st.replace(oversample_by="spline"))):
+        q, by = other
+        np.testing.assert_array_equal(_fit(scaled, q, st, made=(poses, by, blank))[0], own)

@@ -93,6 +93,11 @@ class DriverResult(PosesResult):
         The measurement whose poses were kept (None if no round was kept).
     guard_volume : tuple (Poses, scale, volume) or None
         The last analytic volume the entropy guard made, for reuse.
+    fit_volume : tuple (Poses, Stage, volume) or None
+        The correlation volume a round reconstructed at the poses returned
+        (``poses`` itself), with the stage that made it, for reuse; None
+        when the poses returned were never reconstructed (a last round that
+        converged).
     """
 
     poses: Poses
@@ -102,6 +107,7 @@ class DriverResult(PosesResult):
     stages: tuple
     correlation: Optional[CorrelationResult]
     guard_volume: Optional[tuple] = None
+    fit_volume: Optional[tuple] = None
 
 
 def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0) -> np.ndarray:
@@ -252,7 +258,7 @@ def run_stages(
     history = list(history)
     outcomes: list = []
     kept = None
-    guard_volume = None
+    guard_volume = fit_volume = None
     i0, r0 = int(start[0]), int(start[1])
     for i in range(i0, len(stages)):
         stage = stages[i]
@@ -267,6 +273,7 @@ def run_stages(
         poses, status, res, gv = run.run(r0 if i == i0 else 0)
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
+        fit_volume = (poses, stage, run.volume_at_poses) if run.volume_at_poses is not None else fit_volume
         outcomes.append(StageOutcome(stage.name, stage.scale, status, status.message, run.n_rounds, time.perf_counter() - t0))
         if checkpoint is not None:
             checkpoint(dict(poses=poses, history=[dict(h) for h in history], stage_index=i + 1, rounds_done=0))
@@ -279,6 +286,7 @@ def run_stages(
     return DriverResult(
         poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
         correlation=kept, guard_volume=guard_volume,
+        fit_volume=fit_volume if fit_volume is not None and fit_volume[0] is poses else None,
     )
 
 
@@ -301,6 +309,8 @@ class _StageRun:
         self.ent_range = None
         self.guard_volumes: list = []  # the entropy guard's last two volumes: a rollback keeps the one before
         self.kept = None  # the correlation whose poses are self.poses
+        self.volume = None  # (poses, correlation volume) of the current round
+        self.volume_at_poses = None  # the correlation volume made at the poses the stage returns, if one was
 
     def run(self, first_round: int):
         st = self.stage
@@ -334,7 +344,7 @@ class _StageRun:
             chi_before = float(res.chi_history[0])
             if "consistency" in st.guards:
                 if self.best is None or chi_before < self.best[0]:
-                    self.best = (chi_before, self.poses, self.kept, r)
+                    self.best = (chi_before, self.poses, self.kept, r, self.volume[1])
                 elif chi_before > self.best[0] * (1 + st.diverge_tol):
                     log.info("round %d: chi_before %.5g rose above the best %.5g; keeping the best poses", r, chi_before, self.best[0])
                     # past its best point (a success) or never better than where it started: diverged, unless it
@@ -362,6 +372,9 @@ class _StageRun:
                 break
             prev_inc = inc
         gv = next((v for v in self.guard_volumes if v[0] is self.poses), None)
+        made = [self.volume] + ([(self.best[1], self.best[4])] if self.best is not None else [])
+        self.volume_at_poses = next((v for q, v in made if q is self.poses), None) if self.volume is not None else None
+        self.volume = None
         return self.poses, status, self.kept, gv
 
     def _entropy_check(self) -> tuple[float, bool]:
@@ -382,7 +395,9 @@ class _StageRun:
         st, ctx = self.stage, self.ctx
         p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
         vg_c = refined_grid(vg, st.oversample)
+        self.volume = None  # at most two volumes alive: the best round's and this one
         vol = correlation_volume(p, vg, g.apply(self.poses), st)
+        self.volume = (self.poses, vol)
         # a fresh reconstruction that already fits worse than the best ends the stage: measure nothing more
         limit = self.best[0] * (1 + st.diverge_tol) if "consistency" in st.guards and self.best is not None else None
         return correlate(

@@ -402,19 +402,28 @@ def _truncation(mode, weights, geom, vol_geom, vol_initial):
     return w, found
 
 
-def _fit(scaled, poses, stage: Stage, volume=None):
+def _fit(scaled, poses, stage: Stage, volume=None, made=None):
     """Per-view SNR and residual diagnosis of the data against FDK/FBP with the geometry posed by ``poses``.
 
     Measured as ``stage`` correlates: on ``scaled``, its scale's
     :func:`data_at_scale`, and its correlation grid; ``volume`` (on the
-    user's grid) is reused when that is the same grid.
+    user's grid) is reused when that is the same grid, and ``made`` (a
+    driver's ``fit_volume``) when a round already reconstructed that volume.
     """
     p, geom, vol_geom, weights, gamma2 = scaled
     g = geom.apply(poses)
-    if volume is None or stage.scale != 1 or stage.oversample != 1:
+    if made is not None and made[0] is poses and _same_volume(made[1], stage):
+        volume = made[2]
+    elif volume is None or stage.scale != 1 or stage.oversample != 1:
         volume = correlation_volume(p, vol_geom, g, stage.replace(reconstruct="fdk"))
     res = p - forward(volume, refined_grid(vol_geom, stage.oversample), g)
     return _snr_of(p, res, weights), diagnose_residual(res, gamma2, weights)
+
+
+def _same_volume(made_by: Stage, stage: Stage) -> bool:
+    """Whether ``made_by``'s correlation volume is the one :func:`_fit` makes for ``stage`` (FDK/FBP, same grid)."""
+    return (isinstance(made_by.reconstruct, str) and made_by.reconstruct == "fdk"
+            and (made_by.scale, made_by.oversample, made_by.oversample_by) == (stage.scale, stage.oversample, stage.oversample_by))
 
 
 def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra):
@@ -429,7 +438,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     # below a 0.16 px one: docs/method.md)
     scaled = data_at_scale(p, geom, vol_geom, weights, gamma2, stages[-1].scale)  # once for both fits and the assessment
     (snr_before, d0), (snr_after, d1) = (
-        _fit(scaled, q, stages[-1], v) for q, v in ((Poses.identity(geom.n_views), vol_initial), (poses, vol))
+        _fit(scaled, q, stages[-1], v, m) for q, v, m in ((Poses.identity(geom.n_views), vol_initial, None), (poses, vol, drv.fit_volume))
     )
     diagnoses = (d0, d1)
     log.info("nominal geometry: %s", d0.describe())  # motion dominates here: informative only
