@@ -51,6 +51,7 @@ never be.
 
     python benchmarks/bench_accuracy.py --tiny                  # 3 cases, n=24, 48 views (under a minute)
     python benchmarks/bench_accuracy.py --quick                 # 12 held-out cases, n=40, <=180 views (~10 min, 2 cores)
+    python benchmarks/bench_accuracy.py --scales                # 8 held-out cases, n=92: detectors of 110x129 px, two scales
     python benchmarks/bench_accuracy.py                         # full: 48 held-out cases, n=64, 90..720 views
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
 """

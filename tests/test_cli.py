@@ -275,3 +275,18 @@ def test_binned_calibration_writes_the_geometry_for_the_full_detector(simulated,
     g_full = pdvc.VectorGeometry(full, proj.shape[1:], "cone")
     np.testing.assert_allclose(g_full.binned(2).vectors, binned, rtol=1e-9, atol=1e-9)
     assert not np.allclose(full, np.load(simulated / "geometry_nominal.npy"))
+
+
+def test_a_config_schedule_caps_the_correlation_grid_of_its_volume(tmp_path):
+    """``scales = "auto"`` from a config sees the [volume] grid: 256³ on 256x384 runs (4, 2); 128³ keeps (2, 1)."""
+    from pdvc._inputs import load_scan
+
+    np.save(tmp_path / "p.npy", np.zeros((8, 256, 384), np.float32))
+    for n, scales in ((256, [4, 4, 2, 2, 2]), (128, [2, 2, 1, 1, 1])):
+        (tmp_path / "c.toml").write_text(
+            '[data]\npath = "p.npy"\nis_raw = false\n'
+            '[geometry]\ntype = "cone"\nsod = 1000.0\nodd = 500.0\npixel = 1.5\nangles = { start = 0, stop = 360, count = 8 }\n'
+            f'[volume]\nshape = [{n}, {n}, {n}]\nvoxel_size = {256 / n}\n'
+        )
+        s = load_scan(tmp_path / "c.toml")
+        assert [st.scale for st in s.calibration_options["stages"]] == scales

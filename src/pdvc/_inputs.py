@@ -45,14 +45,14 @@ class Scan:
     geometry_unbinned: Optional[VectorGeometry] = None  # the detector before [preprocess] bin (None when bin = 1)
 
 
-def calibration_options(cal, det_shape) -> dict:
-    """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape``."""
+def calibration_options(cal, det_shape, vol_shape=None) -> dict:
+    """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape`` and ``vol_shape``."""
     from .calibration import Stage, resolve_stages
 
     if cal.stage is not None:
         stages = tuple(Stage.from_dict(d) for d in cal.stage)
     else:
-        stages = resolve_stages(det_shape, recipe=cal.recipe, **cal.recipe_parameters())
+        stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **cal.recipe_parameters())
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
         truncation=cal.truncation,
@@ -285,7 +285,7 @@ def load_scan(config, *, out_dir=None, memory_budget: float | None = None, chunk
     frac = check_coverage(geom, vol_geom)
     if frac < 0.6:  # a square grid as wide as the detector gives ~0.71: its corners leave the field, as in any scan
         notes.append(f"warning: only {100 * frac:.0f}% of the volume box projects onto the detector at the worst view")
-    cal_opts = calibration_options(cfg.calibration, geom.det_shape)
+    cal_opts = calibration_options(cfg.calibration, geom.det_shape, vol_geom.shape)
     if gamma2_counts is not None:
         cal_opts["noise_variance"] = gamma2_counts
         notes.append(f"noise variance from the counts (Poisson, gain 1): {gamma2_counts:.3g}")

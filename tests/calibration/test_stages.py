@@ -78,6 +78,20 @@ def test_default_recipe_is_a_warmup_then_the_model_at_each_scale():
     assert len(recipe_stages("default", (76, 89), jolts=False)) == 2
 
 
+def test_auto_scales_cap_the_correlation_grid_of_the_finest_scale():
+    # the standard problem: scale 1 would correlate on 512^3; an octave coarser it is 256^3 and scale 4 keeps 96 px
+    assert auto_scales((256, 384)) == (2, 1)
+    assert auto_scales((256, 384), (256, 256, 256)) == (4, 2)
+    assert [s.scale for s in recipe_stages("default", (256, 384), vol_shape=(256, 256, 256))] == [4, 4, 2, 2, 2]
+    assert auto_scales((128, 160), (128, 128, 128)) == (2, 1)  # exactly 256^3 at scale 1: kept
+    assert auto_scales((256, 384), (256, 256, 256), oversample=1) == (2, 1)  # 256^3 without refinement
+    assert auto_scales((200, 200), (200, 200, 200)) == (2, 1)  # scale 4 would leave 50 px: not coarser
+    assert auto_scales((2048, 2048), (1024, 1024, 1024)) == (16, 8)  # 128 px at scale 16
+    assert auto_scales((48, 56), (400, 400, 400)) == (1,)
+    # explicit scales are never changed
+    assert [s.scale for s in recipe_stages("default", (256, 384), vol_shape=(256,) * 3, scales=(2, 1))][-1] == 1
+
+
 def test_recipes_differ_in_their_model_and_take_overrides():
     assert set(RECIPES) == {"default", "precession", "jolts", "axis"}
     prec = recipe_stages("precession", (50, 60))[-1]

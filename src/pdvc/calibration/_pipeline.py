@@ -146,7 +146,7 @@ def _snr_of(p, res, weights) -> np.ndarray:
     return np.asarray(snr_db(p, res, axis=(1, 2)), float)
 
 
-def resolve_stages(det_shape, *, recipe="default", stages=None, scales="auto", max_outer=None, warmup=1, **model) -> tuple:
+def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, scales="auto", max_outer=None, warmup=1, **model) -> tuple:
     """The stage list a calibration runs: ``stages`` as given, or the recipe's with the model overrides."""
     try:
         if stages is not None:
@@ -157,7 +157,7 @@ def resolve_stages(det_shape, *, recipe="default", stages=None, scales="auto", m
             if not out or not all(isinstance(s, Stage) for s in out):
                 raise CalibrationError("stages must be a non-empty sequence of pdvc.calibration.Stage")
             return out
-        return recipe_stages(recipe, det_shape, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+        return recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=scales, max_outer=max_outer, warmup=warmup, **model)
     except StageError as exc:
         raise CalibrationError(str(exc)) from None
 
@@ -274,7 +274,7 @@ def calibrate(
         raise CalibrationError(f"init must be 'auto', 'axis' or 'none', got {init!r}")
     if truncation not in ("auto", "on", "off"):
         raise CalibrationError(f"truncation must be 'auto', 'on' or 'off', got {truncation!r}")
-    stage_list = resolve_stages(geom.det_shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+    stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings)

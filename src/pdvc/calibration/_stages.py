@@ -12,6 +12,7 @@ reasons behind every default are in ``docs/method.md``.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -20,6 +21,8 @@ import numpy as np
 from ..correlation import BASIS_NAMES, TemporalBasis, is_basis_name
 from ..errors import PdvcError
 from ..projectors import POSE_PARAMETERS
+
+log = logging.getLogger("pdvc.calibration")
 
 __all__ = [
     "Stage",
@@ -238,20 +241,32 @@ def stages_from_dicts(tables, where: str = "calibration.stage") -> tuple:
     return tuple(Stage.from_dict(t, f"{where}[{i}]") for i, t in enumerate(tables))
 
 
-def auto_scales(det_shape) -> tuple:
+# the largest correlation grid of the automatic schedule's finest scale, in voxels (256^3: 64 MiB of float32)
+MAX_CORRELATION_VOXELS = 256**3
+
+
+def auto_scales(det_shape, vol_shape=None, oversample: int = 2) -> tuple:
     """Default coarse-to-fine scales of the data: coarse enough for ~64+ px, down to 1.
 
     Large detectors (512 columns or more) run 4 -> 2 (the paper's schedule:
     at scale 2 a 2k detector still has ~1000 columns), small ones (under
-    512) 2 -> 1, tiny ones (under 128) 1 only. Whatever the scales, the
-    final volume is reconstructed at full resolution on the user's grid.
+    512) 2 -> 1, tiny ones (under 128) 1 only. With ``vol_shape`` (the
+    user's grid) and the model's ``oversample``, the schedule moves an
+    octave coarser while the finest scale's correlation grid (the grid
+    binned by the scale, refined ``oversample`` times per axis) would exceed
+    ``MAX_CORRELATION_VOXELS`` (256³) and the coarsest scale keeps 64+ px:
+    the standard problem (256³, 256×384 detector) runs 4 -> 2, whose
+    correlation grid is 256³ instead of 512³ (``docs/method.md`` §2).
+    Whatever the scales, the final volume is reconstructed at full
+    resolution on the user's grid.
     """
     n = min(det_shape[1], max(det_shape[0], 1) * 4)  # thin detectors (a few rows) count by columns
-    if n >= 512:
-        return (4, 2)
-    if n >= 128:
-        return (2, 1)
-    return (1,)
+    sched = (4, 2) if n >= 512 else (2, 1) if n >= 128 else (1,)
+    if vol_shape is not None:
+        voxels = float(np.prod(vol_shape))
+        while voxels * (oversample / sched[-1]) ** 3 > MAX_CORRELATION_VOXELS and n / (2 * sched[0]) >= 64:
+            sched = tuple(2 * s for s in sched)
+    return sched
 
 
 # diverge_tol of the model stage at the scales after the first (the finest scales refine)
@@ -268,7 +283,7 @@ _RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
 
 
 def recipe_stages(
-    recipe: str = "default", det_shape=None, *, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
+    recipe: str = "default", det_shape=None, *, vol_shape=None, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
     warmup_basis: str = "drift", jolts: bool = True, **model,
 ) -> tuple:
     """The stage list of a named recipe.
@@ -283,6 +298,9 @@ def recipe_stages(
         ``axis``: only a fixed (offset, tilted) axis (constant lab model).
     det_shape : (rows, cols)
         Needed for ``scales="auto"`` (:func:`auto_scales`).
+    vol_shape : (nz, ny, nx), optional
+        The user's grid: ``scales="auto"`` then caps the finest scale's
+        correlation grid (:func:`auto_scales`).
     scales : "auto" or sequence of int
         One warm-up + model pair per scale, coarse to fine.
     max_outer : int, optional
@@ -309,7 +327,7 @@ def recipe_stages(
     if scales == "auto":
         if det_shape is None:
             raise StageError("scales='auto' needs the detector shape")
-        sched = auto_scales(det_shape)
+        sched = None  # once the model stage (its oversampling) is known
     else:
         try:
             sched = tuple(int(s) for s in scales)
@@ -331,6 +349,12 @@ def recipe_stages(
     spec = dict(_RECIPE_MODEL[recipe])
     spec.update({k: v for k, v in model.items() if v is not None})
     base = Stage(name="model", rounds=1, **spec)
+    if sched is None:
+        sched = auto_scales(det_shape, vol_shape, base.oversample)
+        if vol_shape is not None and sched != auto_scales(det_shape):
+            log.info("scales %s: the finest scale's correlation grid is capped at %d^3 voxels (scales %s would correlate "
+                     "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), auto_scales(det_shape),
+                     round((float(np.prod(vol_shape)) * (base.oversample / auto_scales(det_shape)[-1]) ** 3) ** (1 / 3)))
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
