@@ -313,6 +313,26 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
     for e in hist:
         print(f"          {e['iteration']:3d} {e['stage']:>8s} {e['scale']:5d} {e['elapsed_s']:6.1f} {e['n_iter']:6d} "
               f"{e['chi_before']:10.4g} -> {e['chi_after']:8.4g} {e['increment_px']:8.3f} {e['engine_status']}")
+    # a round's cost in forward projections of its correlation grid at its scale (issue #11: ~4 at most)
+    fwd_s = {}
+    for st in res.stages:
+        if st.scale in fwd_s:
+            continue
+        from pdvc.calibration import refined_grid
+        from pdvc.correlation import coarse_grain
+
+        g_s = geom if st.scale == 1 else coarse_grain(projections, geom, st.scale)[1]
+        vg_c = refined_grid(vg if st.scale == 1 else vg.binned(st.scale), st.oversample)
+        v = np.ones(vg_c.shape, np.float32)
+        pdvc.forward(v, vg_c, g_s)
+        t1 = time.perf_counter()
+        pdvc.forward(v, vg_c, g_s)
+        fwd_s[st.scale] = time.perf_counter() - t1
+    for sc in sorted(fwd_s, reverse=True):
+        rs = [e["elapsed_s"] / fwd_s[sc] for e in hist if e["scale"] == sc]
+        if rs:
+            print(f"  scale {sc}: one forward projection of the correlation grid {fwd_s[sc]:.2f} s; a round costs "
+                  f"{min(rs):.1f}-{max(rs):.1f} of them (median {float(np.median(rs)):.1f})")
     fine = min(o.scale for o in res.stage_outcomes) if res.stage_outcomes else 1
     fine_ph = [f"stage {int(k.split()[1])}" for k in stage_keys if k.endswith(f"scale {fine})")]
     fine_pass_s = sum(probe.get(ph, "pass")[0] for ph in fine_ph)
