@@ -390,7 +390,7 @@ def _truncation(mode, weights, geom, vol_geom, vol_initial):
     from ._truncation import detect_truncation, truncation_weights
 
     found = detect_truncation(vol_initial, vol_geom)
-    log.info("truncation: %s", found.describe())
+    (log.warning if found.lateral else log.info)("truncation: %s", found.describe())
     if mode == "off" or (mode == "auto" and not found.vertical):
         return weights, found
     w = truncation_weights(geom, vol_geom)

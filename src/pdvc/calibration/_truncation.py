@@ -111,7 +111,8 @@ class Truncation:
         if self.lateral:
             parts.append(
                 f"the sample reaches the sides of the volume (edge ring holds {100 * self.edge_ratio:.0f}% of the centre): "
-                "a region-of-interest scan"
+                "a region-of-interest scan; the material outside the volume is not modelled, expect a less accurate "
+                "calibration (docs/method.md, limits)"
             )
         return "; ".join(parts) if parts else "the sample lies inside the volume"
 
