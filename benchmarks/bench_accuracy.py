@@ -82,6 +82,19 @@ SIZES = {
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
 OPTIONS: dict = {}
+# --air: an air level added to every case's line integrals (0: none)
+AIR = {"drift": 0.0}
+
+
+def air_level(shape, drift: float):
+    """An imperfect flat field in line integrals: 0 -> ``drift`` over the scan, plus a ramp of +-drift/3 across
+    the columns whose sign flips halfway through the scan."""
+    import numpy as np
+
+    nv, _, nc = shape
+    k = np.arange(nv)[:, None, None]
+    u = np.linspace(-1.0, 1.0, nc)[None, None, :]
+    return (drift * k / nv + drift / 3 * u * np.where(k < nv // 2, 1.0, -1.0)).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------
@@ -294,6 +307,8 @@ def run_case(c: Case) -> dict:
         return float(reprojection_error(g, truth, pts).rms)
 
     p = scan.projections
+    if AIR["drift"]:
+        p = p + air_level(p.shape, AIR["drift"])
     row["sim_s"] = time.perf_counter() - t0
     row["err_nominal"] = err(geom)
 
@@ -360,7 +375,8 @@ def header(args) -> list:
         f"pdvc {pdvc.__version__} at git {rev}",
         f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}",
         f"suite: size {args.size} (n={SIZES[args.size]['n']}, views {SIZES[args.size]['views']}), split {args.split}, "
-        f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}",
+        f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}"
+        + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else ""),
     ]
 
 
@@ -433,9 +449,13 @@ def main(argv=None) -> int:
     ap.add_argument("--csv", default=None, help="write the per-case rows to this CSV file")
     ap.add_argument("--threads", type=int, default=2, help="numba threads (default 2)")
     ap.add_argument("--verbose", action="store_true", help="show pdvc's log")
+    ap.add_argument("--air", type=float, default=0.0, metavar="DRIFT",
+                    help="add an air level to the line integrals: 0 -> DRIFT over the scan, a +-DRIFT/3 column ramp "
+                         "flipping sign halfway (an imperfect flat field; default 0: none)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)
+    AIR["drift"] = float(args.air)
     for item in args.option:
         key, _, value = item.partition("=")
         OPTIONS[key.strip()] = _toml_value(value)

@@ -131,6 +131,20 @@ def test_config_selects_a_recipe_and_spells_out_stages(tmp_path):
         load_config(_raw(recipe="wobble"), base_dir=tmp_path)
 
 
+def test_background_is_a_stage_field_a_recipe_parameter_and_a_config_key(tmp_path):
+    assert Stage().background == -1
+    assert all(s.background == 1 for s in recipe_stages("default", (50, 60), background=1))
+    st = Stage(background=2)
+    assert Stage.from_dict(st.to_dict()) == st
+    for bad in (3, -2, True, 1.5):
+        with pytest.raises(StageError, match="background must be -1"):
+            Stage(background=bad)
+    cfg = load_config(_raw(background=0), base_dir=tmp_path)
+    assert cfg.calibration.recipe_parameters() == {"background": 0}
+    with pytest.raises(ConfigError, match=r"calibration\.background"):
+        load_config(_raw(background=4), base_dir=tmp_path)
+
+
 def test_resolved_config_holds_the_full_stage_list_that_runs(tmp_path):
     cfg = load_config(_raw(recipe="default", basis="spline:2", max_outer=4), base_dir=tmp_path)
     stages = recipe_stages("default", (40, 50), **cfg.calibration.recipe_parameters())

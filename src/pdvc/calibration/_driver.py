@@ -406,6 +406,7 @@ class _StageRun:
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
             max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
             noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend, max_start_chi=limit,
+            background=None if st.background < 0 else st.background,
         )
 
     def _record(self, r, res, chi_before, entropy, inc, inc_max):

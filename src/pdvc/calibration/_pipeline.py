@@ -443,6 +443,10 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     diagnoses = (d0, d1)
     log.info("nominal geometry: %s", d0.describe())  # motion dominates here: informative only
     (log.warning if d1.chi > 2.0 else log.info)("calibrated geometry: %s", d1.describe())
+    if d1.chi > 1.5 and d1.view_offset >= 0.3 and all(s.background < 0 for s in stages):
+        log.warning("a constant per view holds %.0f%% of the residual: [calibration] background = 0 (1: with a ramp "
+                    "across the detector) fits a smooth background per view with the motion (docs/method.md)",
+                    100 * d1.view_offset)
     rejected = None
     if np.mean(snr_after) < np.mean(snr_before):
         rejected = calibrated
@@ -491,6 +495,7 @@ def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, cente
         return assess(
             v, vg, data, g, poses, basis=model.basis, frame=model.frame, fixed=model.fixed, center=center, weights=w,
             noise_variance=g2, times=times, rcond=model.rcond, backend=backend,
+            background=None if model.background < 0 else model.background,
         )
     except PdvcError as exc:  # a report, never a reason to lose the calibration
         log.warning("assessment of the poses unavailable: %s", exc)

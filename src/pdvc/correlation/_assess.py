@@ -79,6 +79,7 @@ def assess(
     n_modes: int = 3,
     rcond: float = 1e-6,
     backend: str = "auto",
+    background: Optional[int] = None,
 ) -> Assessment:
     """Uncertainty, observability and motion modes of ``poses`` (relative to ``geom``).
 
@@ -87,7 +88,8 @@ def assess(
     motion (parameters in ``frame``, free ones only, rotations scaled by the
     volume's half-size so that both count in length units).
     """
-    prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend)
+    prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend,
+                               background)
     red = prob.reduce(poses.rotvecs, poses.translations)
     _, obs, var = _full_step(prob, basis_obj, red, rcond, 0.0)
     params = poses.to_params(prob.center)

@@ -28,6 +28,7 @@ from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..status import Status
 from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
+from ._background import BACKGROUND_DEGREES, reduce_views_background
 from ._bases import TemporalBasis, make_basis
 from ._frames import lab_to_sample_map, view_angles
 from ._noise import estimate_noise_variance
@@ -231,10 +232,14 @@ class _Problem:
     backend: str
     points: np.ndarray
     n_pass: int = 0
+    background: Optional[int] = None  # degree of the smooth background per view profiled out (None: none)
 
     def reduce(self, rv, t) -> ViewReduction:
         self.n_pass += 1
         g = self.geom.apply_poses(rv, t)
+        if self.background is not None:
+            return reduce_views_background(self.volume, self.vol_geom, g, self.projections, degree=self.background,
+                                           weights=self.weights, center=self.center, backend=self.backend)
         return reduce_views(self.volume, self.vol_geom, g, self.projections, weights=self.weights, center=self.center, backend=self.backend)
 
     def chi(self, red: ViewReduction) -> float:
@@ -353,6 +358,7 @@ def correlate(
     backend: str = "auto",
     callback: Optional[Callable[[dict], None]] = None,
     max_start_chi: Optional[float] = None,
+    background: Optional[int] = None,
 ) -> CorrelationResult:
     """Find the rigid pose of the sample at every view from its projections.
 
@@ -424,6 +430,13 @@ def correlate(
         (the calibration driver's consistency guard: a round whose fresh
         reconstruction already fits worse than the best is not measured).
         Single scale only.
+    background : {None, 0, 1, 2}
+        Also fit a smooth background per view, a polynomial of this degree
+        in the detector coordinates (0: an offset per view, e.g. an air level
+        that drifts; 2: up to quadratic, e.g. the attenuation of material
+        outside the volume), profiled out of the normal equations
+        (``pdvc.correlation._background``). χ and the SNR are then those of
+        the residual after it. The pass stores the sensitivity images.
 
     Returns
     -------
@@ -443,7 +456,7 @@ def correlate(
                 basis=basis, method=method, frame=frame, center=center, fixed=fixed, angles=angles, times=times,
                 max_iter=max_iter, tol_px=tol_px, rcond=rcond, max_modes=max_modes, pgd_passes=pgd_passes,
                 mode_iter=mode_iter, min_gain=min_gain, noise_floor=noise_floor, accelerate=accelerate, backend=backend,
-                callback=callback,
+                callback=callback, background=background,
             ),
             weights,
             noise_variance,
@@ -457,7 +470,8 @@ def correlate(
         raise CorrelationError(f"tol_px must be positive, got {tol_px!r}")
     if method not in ("full", "pgd"):
         raise CorrelationError(f"method must be 'full' or 'pgd', got {method!r}")
-    prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend)
+    prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend,
+                               background)
     n, c, gamma2 = geom.n_views, prob.center, prob.gamma2
     rv = np.zeros((n, 3)) if initial_rotvecs is None else np.array(initial_rotvecs, float).reshape(n, 3)
     t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
@@ -512,7 +526,8 @@ def correlate(
     )
 
 
-def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend):
+def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend,
+             background=None):
     """The checked problem of one measurement (shared by :func:`correlate` and :func:`assess`)."""
     vol = np.asarray(volume, dtype=np.float32)
     s = np.asarray(projections, dtype=np.float32)
@@ -523,6 +538,8 @@ def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, w
         raise ShapeError(f"projections must have shape {(n,) + geom.det_shape}, got {s.shape}")
     if frame not in ("sample", "lab"):
         raise CorrelationError(f"frame must be 'sample' or 'lab', got {frame!r}")
+    if background is not None and (isinstance(background, bool) or background not in BACKGROUND_DEGREES):
+        raise CorrelationError(f"background must be None or a polynomial degree in {BACKGROUND_DEGREES}, got {background!r}")
     free = np.ones(6, bool)
     for name in fixed:
         if name not in POSE_PARAMETERS:
@@ -544,6 +561,7 @@ def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, w
         volume=vol, vol_geom=vol_geom, projections=s, geom=geom, weights=weights, center=c,
         T=lab_to_sample_map(geom) if frame == "lab" else None, free=free, scale=_scaling(radius), gamma2=gamma2,
         backend=backend, points=sample_points(vol_geom, 3, fraction=0.8),
+        background=None if background is None else int(background),
     )
     return prob, basis_obj
 

@@ -110,6 +110,7 @@ that type needs) are required; everything else has the default shown.
     # rcond = 1e-6              # eigenvalue ratio below which a direction is unobservable
     # oversample = 2            # correlation grid this many times finer than the reconstruction grid
     # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper)
+    # background = -1           # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane, 2 quadratic
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
     warmup = 1                  # translation-only rounds before a model with free rotations, per scale
     # ... or the whole stage list, one table per stage (then no recipe parameter above):
@@ -117,7 +118,7 @@ that type needs) are required; everything else has the default shown.
     # name = "warmup"           # every field of pdvc.calibration.Stage: name, basis, frame, fixed, method,
     # basis = "drift"           # reconstruct, scale, oversample, oversample_by, rounds, tol_px, until ("converged" |
     # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
-    # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
+    # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond, background
     # until = "rounds"
     # rounds = 1
     # run settings
@@ -371,6 +372,7 @@ class CalibrationConfig:
     rcond: Optional[float] = None
     oversample: Optional[int] = None
     oversample_by: Optional[str] = None
+    background: Optional[int] = None
     center: Optional[tuple[float, float, float]] = None
     fix_scale: bool = True
     backend: str = "auto"
@@ -775,7 +777,7 @@ _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
 
 _RECIPE_KEYS = (
     "basis", "method", "frame", "fixed", "reconstruct", "guards", "max_outer", "tol_px", "max_iter", "max_modes",
-    "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample", "oversample_by", "accelerate",
+    "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample", "oversample_by", "accelerate", "background",
 )
 
 
@@ -824,6 +826,11 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
     accelerate = t.pop("accelerate")
     if accelerate is not None:
         kw["accelerate"] = _boolean(accelerate, w + "accelerate")
+    background = t.pop("background")
+    if background is not None:
+        kw["background"] = _integer(background, w + "background", minimum=-1)
+        if kw["background"] > 2:
+            raise ConfigError(f"calibration.background must be -1 (none), 0, 1 or 2 (a polynomial degree), got {_got(background)}")
     scales = t.pop("scales", d.scales)
     if scales == "auto":
         pass

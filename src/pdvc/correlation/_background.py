@@ -1,0 +1,85 @@
+"""A smooth background per view, estimated with the motion and profiled out of the normal equations.
+
+What a rigid motion of the sample cannot explain but a few smooth numbers
+per view can: an air level left by an imperfect flat field (a constant per
+view, drifting in time), a gain ramp across the detector, the slowly varying
+attenuation of material outside the reconstructed box (a region-of-interest
+scan). The measured view is modelled as ``s = Π f + Φ c``, ``Φ`` the
+monomials ``u^a v^b`` (``a + b ≤ degree``) of the detector coordinates
+scaled to [-1, 1], ``c`` free per view. Eliminating ``c`` (variable
+projection) leaves the rigid problem with
+
+    M' = M - C A⁻¹ Cᵀ,   b' = b - C A⁻¹ e,   rss' = rss - eᵀ A⁻¹ e,
+
+``A = Φ W Φᵀ``, ``C = G W Φᵀ``, ``e = Φ W ρ`` (``G`` the six
+sensitivities, ``ρ`` the residual): exactly the normal equations, step and
+χ of the joint problem minimised over ``c``. Everything downstream (the
+Gauss–Newton and PGD solves, χ, the per-view SNR) uses them unchanged.
+The pass computes the sensitivity images (:func:`pdvc.projectors.jacobian`,
+threaded, chunks of views of ~256 MiB) instead of the fused reduction: about
+1.5–2 × the time of a fused pass on the quick benchmark cases.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..projectors import ViewReduction, jacobian
+
+__all__ = ["background_basis", "reduce_views_background", "BACKGROUND_DEGREES"]
+
+BACKGROUND_DEGREES = (0, 1, 2)
+_CHUNK_BYTES = 256 * 2**20
+
+
+def background_basis(det_shape, degree: int) -> np.ndarray:
+    """``(K, n_rows, n_cols)`` monomials ``u^a v^b``, ``a + b ≤ degree``, u and v in [-1, 1] across the detector."""
+    if degree not in BACKGROUND_DEGREES:
+        raise ValueError(f"background degree must be one of {BACKGROUND_DEGREES}, got {degree!r}")
+    nr, nc = det_shape
+    v = np.linspace(-1.0, 1.0, nr) if nr > 1 else np.zeros(1)
+    u = np.linspace(-1.0, 1.0, nc) if nc > 1 else np.zeros(1)
+    vv, uu = np.meshgrid(v, u, indexing="ij")
+    return np.stack([uu**a * vv**b for d in range(degree + 1) for b in range(d + 1) for a in (d - b,)])
+
+
+def reduce_views_background(volume, vol_geom, geom, measured, *, degree: int, weights=None, center=None,
+                            backend="auto") -> ViewReduction:
+    """:func:`pdvc.projectors.reduce_views` with a smooth background per view profiled out (module docstring)."""
+    s = np.asarray(measured, np.float32)
+    nv = geom.n_views
+    nr, nc = geom.det_shape
+    chunk = max(1, int(_CHUNK_BYTES // (7 * 4 * nr * nc)))  # views per images pass: ~256 MiB of images at a time
+    phi = background_basis((nr, nc), degree).reshape(-1, nr * nc)  # (K, P)
+    if weights is None:
+        w = np.ones((1, nr * nc))
+    else:
+        w = np.asarray(weights, np.float64).reshape(-1, nr * nc)
+    M = np.empty((nv, 6, 6))
+    b = np.empty((nv, 6))
+    rss = np.empty(nv)
+    wsum = np.empty(nv)
+    msum = np.empty(nv)
+    m2sum = np.empty(nv)
+    for k in range(nv):  # one view at a time: a few (6 + K) x P arrays
+        if k % chunk == 0:
+            proj, sens = jacobian(volume, vol_geom, geom[k:k + chunk], center=center, backend=backend)
+        wk = w[k if w.shape[0] > 1 else 0]
+        G = sens[k % chunk].reshape(6, -1).astype(np.float64)
+        sk = s[k].reshape(-1).astype(np.float64)
+        rho = sk - proj[k % chunk].reshape(-1)
+        Gw = G * wk
+        Pw = phi * wk
+        A = Pw @ phi.T
+        C = Gw @ phi.T
+        e = Pw @ rho
+        sol = np.linalg.lstsq(A, np.column_stack([C.T, e]), rcond=1e-12)[0]  # A⁻¹ [Cᵀ e]; A is singular with no weight
+        M[k] = Gw @ G.T - C @ sol[:, :6]
+        b[k] = Gw @ rho - C @ sol[:, 6]
+        rss[k] = max(float(wk @ rho**2 - e @ sol[:, 6]), 0.0)
+        wsum[k] = float(wk.sum())
+        msum[k] = float(wk @ sk)
+        m2sum[k] = float(wk @ sk**2)
+    red = ViewReduction(M=M, b=b, rss=rss, weight_sum=wsum, meas_sum=msum, meas_sq_sum=m2sum,
+                        resid_sum=np.zeros(nv), center=np.asarray(center, float))
+    return red
