@@ -297,3 +297,17 @@ def test_the_check_against_nominal_reuses_a_volume_only_when_it_is_the_one_it_wo
                   (poses, st.replace(reconstruct="cgls")), (poses, st.replace(oversample_by="spline"))):
         q, by = other
         np.testing.assert_array_equal(_fit(scaled, q, st, made=(poses, by, blank))[0], own)
+
+
+def test_the_log_suggests_a_background_when_a_constant_per_view_dominates_the_residual(caplog):
+    from tests.correlation.cases import make_case
+
+    c = make_case("offset", n=24, n_views=48)
+    p = c.scan.projections + np.linspace(0.0, 0.3, c.scan.geometry.n_views, dtype=np.float32)[:, None, None]
+    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+        pdvc.calibrate(p, c.scan.geometry, c.vol_geom, max_outer=2, fixed=("rx", "ry", "rz"))
+    assert "background = 0" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+        pdvc.calibrate(p, c.scan.geometry, c.vol_geom, max_outer=2, fixed=("rx", "ry", "rz"), background=0)
+    assert "background = 0" not in caplog.text
