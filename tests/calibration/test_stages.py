@@ -133,6 +133,7 @@ def test_config_selects_a_recipe_and_spells_out_stages(tmp_path):
 
 def test_background_is_a_stage_field_a_recipe_parameter_and_a_config_key(tmp_path):
     assert Stage().background == -1
+    assert all(s.background == -1 for s in recipe_stages("default", (50, 60)))
     assert all(s.background == 1 for s in recipe_stages("default", (50, 60), background=1))
     st = Stage(background=2)
     assert Stage.from_dict(st.to_dict()) == st

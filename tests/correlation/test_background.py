@@ -94,3 +94,17 @@ def test_the_images_pass_by_chunks_of_views_gives_the_same_reduction(case, monke
     chunked = reduce_views_background(vol, vg, g, p, degree=1, center=vg.offset)
     np.testing.assert_array_equal(chunked.M, whole.M)
     np.testing.assert_array_equal(chunked.rss, whole.rss)
+
+
+def test_an_offset_profiled_from_the_fused_pass_equals_the_one_from_the_images(case):
+    """Degree 0 runs on the fused pass (Σ w g, Σ w ρ, Σ w); the images path computes the same thing another way."""
+    from pdvc.correlation._background import _by_images
+
+    c, vol = case
+    p, g, vg = c.scan.projections, c.scan.geometry, c.vol_geom
+    w = np.random.default_rng(1).uniform(0.2, 1.0, g.det_shape).astype(np.float32)
+    fused = reduce_views_background(vol, vg, g, p, degree=0, weights=w, center=vg.offset)
+    images = _by_images(vol, vg, g, p, degree=0, weights=w, center=vg.offset)
+    np.testing.assert_allclose(fused.M, images.M, rtol=1e-6, atol=1e-7 * np.abs(images.M).max())
+    np.testing.assert_allclose(fused.b, images.b, atol=1e-6 * np.abs(images.b).max())
+    np.testing.assert_allclose(fused.rss, images.rss, rtol=1e-6)

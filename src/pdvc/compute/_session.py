@@ -18,7 +18,7 @@ workers, so that it is sent once:
 "Same content" is checked on every call by a CRC-32 of the array (of a
 regular sample of 2**28 elements for arrays over ``FULL_CHECKSUM_BYTES``), so an
 array changed in place is sent again. What comes back: the per-view 6 x 6
-blocks, right-hand sides and residual sums (32 numbers per view), the
+blocks, right-hand sides and residual sums (38 numbers per view), the
 projections of :func:`forward`, the slabs of an FDK.
 
 Faults: every task is pure and submitted with ``retries``; a task whose
@@ -315,7 +315,7 @@ class DaskSession:
         return out
 
     def reduce(self, vol, vol_geom, geom, center, measured, weights, backend) -> np.ndarray:
-        """The backend's ``reduce`` on the cluster: ``(n_views, 32)`` float64."""
+        """The backend's ``reduce`` on the cluster: ``(n_views, 38)`` float64."""
 
         def submit(tag):
             vf = self._volume(vol)

@@ -71,7 +71,7 @@ def forward_chunk(volume, vol_geom, geom, backend) -> np.ndarray:
 
 
 def reduce_chunk(volume, vol_geom, geom, measured, weights, center, backend) -> np.ndarray:
-    """The backend's per-view reduction of one chunk of views, ``(n_chunk, 32)`` float64 (see ``reduce_views``)."""
+    """The backend's per-view reduction of one chunk of views, ``(n_chunk, 38)`` float64 (see ``reduce_views``)."""
     from ..projectors import get_backend
 
     set_task_threads()

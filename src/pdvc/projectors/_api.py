@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -163,6 +164,9 @@ class ViewReduction:
         Weighted residual sum of squares ``Σ w (s - Π f)²``.
     weight_sum, meas_sum, meas_sq_sum, resid_sum : (n_views,) float64
         ``Σ w``, ``Σ w s``, ``Σ w s²``, ``Σ w ρ`` (for χ and the SNR of each view).
+    grad_sum : (n_views, 6) float64 or None
+        ``Σ w g``: with ``resid_sum`` and ``weight_sum``, what eliminating an
+        offset per view from the normal equations needs.
     center : (3,) float64
         Centre of the rotations used.
     """
@@ -175,6 +179,7 @@ class ViewReduction:
     meas_sq_sum: np.ndarray
     resid_sum: np.ndarray
     center: np.ndarray
+    grad_sum: Optional[np.ndarray] = None
 
     @property
     def n_views(self) -> int:
@@ -253,6 +258,7 @@ def reduce_views(
         meas_sq_sum=red[:, 30].copy(),
         resid_sum=red[:, 31].copy(),
         center=c,
+        grad_sum=red[:, 32:38].copy(),
     )
 
 

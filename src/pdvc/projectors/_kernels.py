@@ -67,7 +67,7 @@ from numba import njit, prange, uint64
 # clipping must stay correct for rays parallel to a grid plane.
 _FAST = {"contract", "reassoc", "nsz", "arcp"}
 
-N_RED = 32  # 21 (upper triangle of M) + 6 (b) + rss + sum w + sum w s + sum w s^2 + sum w rho
+N_RED = 38  # 21 (upper triangle of M) + 6 (b) + rss + sum w + sum w s + sum w s^2 + sum w rho + 6 (sum w g)
 
 
 @njit(inline="always")
@@ -572,7 +572,7 @@ def jacobian_images_kernel(vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, g
 def jacobian_reduce_kernel(
     vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, geo, cone, meas, weights, partial
 ):
-    """Per (view, row): sums of w g gᵀ (upper triangle), w g ρ, w ρ², w, w s, w s², w ρ.
+    """Per (view, row): sums of w g gᵀ (upper triangle), w g ρ, w ρ², w, w s, w s², w ρ, w g.
 
     ρ = s - P (measured minus projected), so that M⁻¹ b is the Gauss-Newton
     step of one view.  ``weights`` has 1 or n_views leading entries.
@@ -604,6 +604,7 @@ def jacobian_reduce_kernel(
                     acc[q] += wgi * g[j]
                     q += 1
                 acc[21 + i] += wgi * rho
+                acc[32 + i] += wgi
             acc[27] += w * rho * rho
             acc[28] += w
             acc[29] += w * s
