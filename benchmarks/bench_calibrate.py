@@ -314,14 +314,13 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
         print(f"          {e['iteration']:3d} {e['stage']:>8s} {e['scale']:5d} {e['elapsed_s']:6.1f} {e['n_iter']:6d} "
               f"{e['chi_before']:10.4g} -> {e['chi_after']:8.4g} {e['increment_px']:8.3f} {e['engine_status']}")
     # a round's cost in forward projections of its correlation grid at its scale (issue #11: ~4 at most)
+    from pdvc.calibration import refined_grid
+
     fwd_s = {}
     for st in res.stages:
         if st.scale in fwd_s:
             continue
-        from pdvc.calibration import refined_grid
-        from pdvc.correlation import coarse_grain
-
-        g_s = geom if st.scale == 1 else coarse_grain(projections, geom, st.scale)[1]
+        g_s = geom.binned(st.scale) if st.scale > 1 else geom  # the coarse-grained data's geometry
         vg_c = refined_grid(vg if st.scale == 1 else vg.binned(st.scale), st.oversample)
         v = np.ones(vg_c.shape, np.float32)
         pdvc.forward(v, vg_c, g_s)

@@ -358,11 +358,11 @@ def recipe_stages(
     spec.update({k: v for k, v in model.items() if v is not None})
     base = Stage(name="model", rounds=1, **spec)
     if sched is None:
-        sched = auto_scales(det_shape, vol_shape, base.oversample)
-        if vol_shape is not None and sched != auto_scales(det_shape):
+        sched, plain = auto_scales(det_shape, vol_shape, base.oversample), auto_scales(det_shape)
+        if sched != plain:
+            edge = round((float(np.prod(vol_shape)) * (base.oversample / plain[-1]) ** 3) ** (1 / 3))
             log.info("scales %s: the finest scale's correlation grid is capped at %d^3 voxels (scales %s would correlate "
-                     "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), auto_scales(det_shape),
-                     round((float(np.prod(vol_shape)) * (base.oversample / auto_scales(det_shape)[-1]) ** 3) ** (1 / 3)))
+                     "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), plain, edge)
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)

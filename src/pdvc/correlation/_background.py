@@ -114,6 +114,5 @@ def _by_images(volume, vol_geom, geom, measured, *, degree: int, weights=None, c
         wsum[k] = float(wk.sum())
         msum[k] = float(wk @ sk)
         m2sum[k] = float(wk @ sk**2)
-    red = ViewReduction(M=M, b=b, rss=rss, weight_sum=wsum, meas_sum=msum, meas_sq_sum=m2sum,
-                        resid_sum=np.zeros(nv), center=np.asarray(center, float))
-    return red
+    return ViewReduction(M=M, b=b, rss=rss, weight_sum=wsum, meas_sum=msum, meas_sq_sum=m2sum,
+                         resid_sum=np.zeros(nv), center=np.asarray(center, float))

@@ -436,7 +436,8 @@ def correlate(
         that drifts; 2: up to quadratic, e.g. the attenuation of material
         outside the volume), profiled out of the normal equations
         (``pdvc.correlation._background``). χ and the SNR are then those of
-        the residual after it. The pass stores the sensitivity images.
+        the residual after it. Degree 0 costs nothing extra; 1 and 2 compute
+        the sensitivity images (threaded, by chunks of views).
 
     Returns
     -------

@@ -258,7 +258,7 @@ def reduce_views(
         meas_sq_sum=red[:, 30].copy(),
         resid_sum=red[:, 31].copy(),
         center=c,
-        grad_sum=red[:, 32:38].copy(),
+        grad_sum=red[:, 32:38].copy() if red.shape[1] >= 38 else None,  # a backend that sums w g too
     )
 
 
