@@ -60,7 +60,7 @@ def test_stage_round_trips_through_toml():
         stages_from_dicts([{"name": "x", "rotations": 3}])
 
 
-def test_default_recipe_is_a_warmup_then_the_model_at_each_scale():
+def test_default_recipe_is_a_warmup_then_the_model_at_each_scale_the_warmup_at_the_first_only():
     stages = recipe_stages("default", (76, 89))
     assert auto_scales((76, 89)) == (1,)
     assert [(s.name, s.scale, s.rounds) for s in stages] == [("warmup", 1, 1), ("model", 1, 9), ("jolts", 1, 5)]
@@ -71,7 +71,8 @@ def test_default_recipe_is_a_warmup_then_the_model_at_each_scale():
     assert model.basis == "fourier:1" and model.frame == "sample" and model.fixed == ("rz",)
     assert model.until == "converged" and model.guards == ("consistency",)
     big = recipe_stages("default", (1024, 1024))
-    assert [s.scale for s in big] == [4, 4, 2, 2, 2]
+    # translations first at the coarsest scale; the finer one starts from the model's poses, with all its rounds
+    assert [(s.name, s.scale, s.rounds) for s in big] == [("warmup", 4, 1), ("model", 4, 9), ("model", 2, 10), ("jolts", 2, 5)]
     # the finer scale refines: its model stops at the first fresh reconstruction that fits worse
     assert [s.diverge_tol for s in big if s.name == "model"] == [Stage().diverge_tol, 0.0]
     assert all(s.diverge_tol == 0.01 for s in recipe_stages("default", (1024, 1024), diverge_tol=0.01) if s.name == "model")
@@ -82,7 +83,7 @@ def test_auto_scales_cap_the_correlation_grid_of_the_finest_scale():
     # the standard problem: scale 1 would correlate on 512^3; an octave coarser it is 256^3 and scale 4 keeps 96 px
     assert auto_scales((256, 384)) == (2, 1)
     assert auto_scales((256, 384), (256, 256, 256)) == (4, 2)
-    assert [s.scale for s in recipe_stages("default", (256, 384), vol_shape=(256, 256, 256))] == [4, 4, 2, 2, 2]
+    assert [s.scale for s in recipe_stages("default", (256, 384), vol_shape=(256, 256, 256))] == [4, 4, 2, 2]
     assert auto_scales((128, 160), (128, 128, 128)) == (2, 1)  # exactly 256^3 at scale 1: kept
     assert auto_scales((256, 384), (256, 256, 256), oversample=1) == (2, 1)  # 256^3 without refinement
     assert auto_scales((200, 200), (200, 200, 200)) == (2, 1)  # scale 4 would leave 50 px: not coarser

@@ -310,12 +310,12 @@ def recipe_stages(
         The user's grid: ``scales="auto"`` then caps the finest scale's
         correlation grid (:func:`auto_scales`).
     scales : "auto" or sequence of int
-        One warm-up + model pair per scale, coarse to fine.
+        A model stage per scale, coarse to fine (the first scale also a warm-up).
     max_outer : int, optional
         Rounds per scale, warm-up included (recipe default: 10, 8 for
         ``precession`` and ``jolts``).
     warmup : int
-        Translation-only rounds before the model at each scale, when the
+        Translation-only rounds before the model at the first scale, when the
         model frees a rotation (0: none).
     warmup_basis : {"drift", "model"}
         The warm-up's translation model: ``"drift"``, the lab-frame
@@ -368,7 +368,8 @@ def recipe_stages(
     refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
     stages = []
     for j, s in enumerate(sched):
-        n_warm = min(warmup, n_outer - 1) if base.frees_rotation else 0
+        # translations first at the first scale only: a finer scale starts from poses the coarser one measured
+        n_warm = min(warmup, n_outer - 1) if base.frees_rotation and j == 0 else 0
         if n_warm:
             stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
         stages.append(base.replace(scale=s, rounds=n_outer - n_warm, **(refine if j > 0 else {})))
