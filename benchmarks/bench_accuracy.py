@@ -339,6 +339,7 @@ def run_case(c: Case) -> dict:
     row["status"] = str(res.status)
     row["success"] = bool(res.success)
     row["truncation"] = str(res.options.get("truncation_found", ""))[:80]
+    row["background"] = str(res.options.get("background", "")).split(":")[0]
     row["worse"] = bool(row["err_pdvc"] > row["err_nominal"] + 1e-6 or row["snr_gain"] < -1e-6)
     return row
 

@@ -133,18 +133,20 @@ def test_config_selects_a_recipe_and_spells_out_stages(tmp_path):
 
 
 def test_background_is_a_stage_field_a_recipe_parameter_and_a_config_key(tmp_path):
-    assert Stage().background == -1
-    assert all(s.background == -1 for s in recipe_stages("default", (50, 60)))
+    assert Stage().background == "auto"
+    assert all(s.background == "auto" for r in RECIPES for s in recipe_stages(r, (50, 60)))
     assert all(s.background == 1 for s in recipe_stages("default", (50, 60), background=1))
-    st = Stage(background=2)
-    assert Stage.from_dict(st.to_dict()) == st
-    for bad in (3, -2, True, 1.5):
-        with pytest.raises(StageError, match="background must be -1"):
+    for st in (Stage(background=2), Stage(background=-1), Stage()):
+        assert Stage.from_dict(st.to_dict()) == st
+    for bad in (3, -2, True, 1.5, "none"):
+        with pytest.raises(StageError, match="background must be 'auto', -1"):
             Stage(background=bad)
     cfg = load_config(_raw(background=0), base_dir=tmp_path)
     assert cfg.calibration.recipe_parameters() == {"background": 0}
-    with pytest.raises(ConfigError, match=r"calibration\.background"):
-        load_config(_raw(background=4), base_dir=tmp_path)
+    assert load_config(_raw(background="auto"), base_dir=tmp_path).calibration.recipe_parameters() == {"background": "auto"}
+    for bad in (4, "plane"):
+        with pytest.raises(ConfigError, match=r"calibration\.background"):
+            load_config(_raw(background=bad), base_dir=tmp_path)
 
 
 def test_resolved_config_holds_the_full_stage_list_that_runs(tmp_path):
@@ -301,15 +303,22 @@ def test_the_check_against_nominal_reuses_a_volume_only_when_it_is_the_one_it_wo
         np.testing.assert_array_equal(_fit(scaled, q, st, made=(poses, by, blank))[0], own)
 
 
-def test_the_log_suggests_a_background_when_a_constant_per_view_dominates_the_residual(caplog):
+def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log_suggests_it_when_off(caplog):
     from tests.correlation.cases import make_case
 
     c = make_case("offset", n=24, n_views=48)
+    kw = dict(max_outer=2, fixed=("rx", "ry", "rz"))
+    clean = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, **kw)
+    assert all(h["background"] == -1 for h in clean.history)
+    assert clean.options["background"].startswith("none")
     p = c.scan.projections + np.linspace(0.0, 0.3, c.scan.geometry.n_views, dtype=np.float32)[:, None, None]
     with caplog.at_level("WARNING", logger="pdvc.calibration"):
-        pdvc.calibrate(p, c.scan.geometry, c.vol_geom, max_outer=2, fixed=("rx", "ry", "rz"))
-    assert "background = 0" in caplog.text
+        auto = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, **kw)
+    assert all(h["background"] == 1 for h in auto.history)  # decided at the first round, kept at every stage
+    assert auto.options["background"].startswith("a plane per view")
+    assert "background = 0" not in caplog.text
     caplog.clear()
     with caplog.at_level("WARNING", logger="pdvc.calibration"):
-        pdvc.calibrate(p, c.scan.geometry, c.vol_geom, max_outer=2, fixed=("rx", "ry", "rz"), background=0)
-    assert "background = 0" not in caplog.text
+        off = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, background=-1, **kw)
+    assert all(h["background"] == -1 for h in off.history)
+    assert "background = 0" in caplog.text

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -87,7 +87,8 @@ class DriverResult(PosesResult):
         ``snr_before``, ``snr`` (dB), ``entropy`` (NaN unless the entropy
         guard runs), ``increment_px``, ``increment_max_px`` (full-resolution
         pixels), ``n_iter`` (Jacobian passes), ``engine_status``,
-        ``elapsed_s``.
+        ``elapsed_s``, ``background`` (the degree of the background per view
+        fitted, -1: none).
     stages : tuple of StageOutcome
     correlation : CorrelationResult or None
         The measurement whose poses were kept (None if no round was kept).
@@ -98,6 +99,12 @@ class DriverResult(PosesResult):
         (``poses`` itself), with the stage that made it, for reuse; None
         when the poses returned were never reconstructed (a last round that
         converged).
+    background : int, None or "auto"
+        What the stages with ``background = "auto"`` fitted: a degree, None
+        (none), or ``"auto"`` when no round decided it.
+    offset_sigma : float
+        The per-view offset (in noise standard deviations) that decision
+        was made on (nan if none).
     """
 
     poses: Poses
@@ -108,6 +115,8 @@ class DriverResult(PosesResult):
     correlation: Optional[CorrelationResult]
     guard_volume: Optional[tuple] = None
     fit_volume: Optional[tuple] = None
+    background: Any = "auto"
+    offset_sigma: float = float("nan")
 
 
 def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0) -> np.ndarray:
@@ -189,6 +198,19 @@ class _Context:
         self.center = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float)
         self.points = sample_points(vol_geom, 3, fraction=0.8)
         self._scaled: dict = {}
+        self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
+        self.offset_sigma = float("nan")
+
+    def background(self, stage: Stage):
+        """The ``background`` a stage's correlation gets: its own, or the run's decision for ``"auto"``."""
+        if stage.background == "auto":
+            return self.auto_background
+        return None if stage.background < 0 else int(stage.background)
+
+    def decided(self, stage: Stage, res: CorrelationResult) -> None:
+        """Keep the first ``"auto"`` decision for the rest of the run."""
+        if stage.background == "auto" and self.auto_background == "auto":
+            self.auto_background, self.offset_sigma = res.background, float(res.offset_sigma)
 
     def at_scale(self, s: int):
         """(projections, geometry, grid, weights, γ²) at scale ``s``, made once."""
@@ -256,6 +278,9 @@ def run_stages(
     )
     poses = Poses.identity(geom.n_views) if poses is None else poses
     history = list(history)
+    for h in history:  # a resumed run keeps the decision its first rounds made
+        if "background" in h and 0 <= int(h.get("stage_index", -1)) < len(stages) and stages[int(h["stage_index"])].background == "auto":
+            ctx.auto_background = None if int(h["background"]) < 0 else int(h["background"])
     outcomes: list = []
     kept = None
     guard_volume = fit_volume = None
@@ -287,6 +312,7 @@ def run_stages(
         poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
         correlation=kept, guard_volume=guard_volume,
         fit_volume=fit_volume if fit_volume is not None and fit_volume[0] is poses else None,
+        background=ctx.auto_background, offset_sigma=ctx.offset_sigma,
     )
 
 
@@ -341,6 +367,7 @@ class _StageRun:
                     self.poses, self.kept = prev_poses, prev_kept
                     break
             res = self._correlate()
+            self.ctx.decided(st, res)
             chi_before = float(res.chi_history[0])
             if "consistency" in st.guards:
                 if self.best is None or chi_before < self.best[0]:
@@ -406,7 +433,7 @@ class _StageRun:
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
             max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
             noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend, max_start_chi=limit,
-            background=None if st.background < 0 else st.background,
+            background=ctx.background(st),
         )
 
     def _record(self, r, res, chi_before, entropy, inc, inc_max):
@@ -416,6 +443,7 @@ class _StageRun:
             chi_after=float(res.chi), snr_before=float(res.snr_history[0]), snr=float(res.snr_history[-1]),
             entropy=entropy, increment_px=inc, increment_max_px=inc_max, n_iter=int(res.n_iter),
             engine_status=Status(res.status).name.lower(), elapsed_s=time.perf_counter() - self.t_round,
+            background=-1 if res.background is None else int(res.background),
         )
         self.history.append(entry)
         self.n_rounds += 1

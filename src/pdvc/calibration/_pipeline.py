@@ -300,7 +300,10 @@ def calibrate(
     options = dict(
         recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
+        background=_background_text(drv),
     )
+    if isinstance(drv.background, int):
+        log.info("background: %s", options["background"])
     res = _finish(
         p, geom, vol_geom, vol_initial, drv, stage_list, status, message, gamma2, weights, times, center, backend,
         fix_scale, emit, timings, dict(initial_offset_px=offset_px, options=options, truncation=trunc),
@@ -420,6 +423,27 @@ def _fit(scaled, poses, stage: Stage, volume=None, made=None):
     return _snr_of(p, res, weights), diagnose_residual(res, gamma2, weights)
 
 
+_BACKGROUND_NAMES = {0: "an offset", 1: "a plane", 2: "a quadratic"}
+
+
+def _background_text(drv) -> str:
+    """What the stages with ``background = "auto"`` decided, and on what."""
+    b, off = drv.background, drv.offset_sigma
+    if b == "auto":
+        return "as each stage says (no stage decided 'auto')"
+    if b is None:
+        return f"none: the residual's per-view offset was {off:.2g} noise std at the first round (background = 'auto')"
+    return (f"{_BACKGROUND_NAMES[b]} per view fitted with the motion: the residual's per-view offset was {off:.2g} noise std "
+            "at the first round (background = 'auto'; an air level or flat field that drifts)")
+
+
+def _background_of(stage: Stage, auto_background):
+    """The degree a stage fitted (None: none), with the run's decision for ``background = "auto"``."""
+    if stage.background == "auto":
+        return auto_background if isinstance(auto_background, int) else None
+    return None if stage.background < 0 else int(stage.background)
+
+
 def _same_volume(made_by: Stage, stage: Stage) -> bool:
     """Whether ``made_by``'s correlation volume is the one :func:`_fit` makes for ``stage`` (FDK/FBP, same grid)."""
     return (isinstance(made_by.reconstruct, str) and made_by.reconstruct == "fdk"
@@ -443,7 +467,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     diagnoses = (d0, d1)
     log.info("nominal geometry: %s", d0.describe())  # motion dominates here: informative only
     (log.warning if d1.chi > 2.0 else log.info)("calibrated geometry: %s", d1.describe())
-    if d1.chi > 1.5 and d1.view_offset >= 0.3 and all(s.background < 0 for s in stages):
+    if d1.chi > 1.5 and d1.view_offset >= 0.3 and not any(h.get("background", -1) >= 0 for h in drv.history):
         log.warning("a constant per view holds %.0f%% of the residual: [calibration] background = 0 (1: with a ramp "
                     "across the detector) fits a smooth background per view with the motion (docs/method.md)",
                     100 * d1.view_offset)
@@ -471,7 +495,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         log.warning("motion summary unavailable: %s", exc)
     emit(dict(event="assess"))
     t0 = time.perf_counter()
-    assessment = _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled)
+    assessment = _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled, drv.background)
     timings["assess"] = time.perf_counter() - t0
     return CalibrationResult(
         geometry=calibrated, nominal=geom, poses=poses, assessment=assessment, history=drv.history, stages=tuple(stages),
@@ -482,10 +506,11 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     )
 
 
-def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled):
+def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled, auto_background=None):
     """The model of the last stage that had to converge, measured at the poses kept, at that stage's scale.
 
-    ``scaled`` is the data at the last stage's scale (reused when the model's scale is the same).
+    ``scaled`` is the data at the last stage's scale (reused when the model's scale is the same);
+    ``auto_background`` what the run fitted for ``background = "auto"``.
     """
     model = next((s for s in reversed(stages) if s.until == "converged"), stages[-1])
     s = model.scale
@@ -495,7 +520,7 @@ def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, cente
         return assess(
             v, vg, data, g, poses, basis=model.basis, frame=model.frame, fixed=model.fixed, center=center, weights=w,
             noise_variance=g2, times=times, rcond=model.rcond, backend=backend,
-            background=None if model.background < 0 else model.background,
+            background=_background_of(model, auto_background),
         )
     except PdvcError as exc:  # a report, never a reason to lose the calibration
         log.warning("assessment of the poses unavailable: %s", exc)

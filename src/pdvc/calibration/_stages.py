@@ -115,10 +115,14 @@ class Stage:
         round, stop when the entropy of the stage's final-grid volume rises by
         more than ``entropy_tol`` over the lowest, keeping the poses before
         the last round.
-    background : int
+    background : "auto" or int
         -1 (none) or the degree (0, 1, 2) of a smooth background per view
         fitted with the motion (:func:`pdvc.correlate`'s ``background``): an
         air level that drifts, a gain ramp, material outside the volume.
+        ``"auto"`` (default): decided once per run, at the first round, from
+        the per-view offset of the residual (a plane per view when it is
+        well above the noise, none otherwise; ``docs/method.md`` §5.10); the
+        later stages keep that choice.
     max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
         The engine's options (:func:`pdvc.correlate`).
     """
@@ -146,7 +150,7 @@ class Stage:
     min_gain: float = 0.01
     noise_floor: float = 1.05
     rcond: float = 1e-6
-    background: int = -1
+    background: Any = "auto"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -189,9 +193,10 @@ class Stage:
             if not isinstance(val, (int, float, np.floating)) or isinstance(val, bool) or not (val >= 0):
                 raise StageError(f"{w}{key} must be a non-negative number, got {val!r}")
             set_(key, float(val))
-        if isinstance(self.background, bool) or self.background not in (-1, 0, 1, 2):
-            raise StageError(f"{w}background must be -1 (none), 0, 1 or 2 (a polynomial degree), got {self.background!r}")
-        set_("background", int(self.background))
+        if self.background != "auto":
+            if isinstance(self.background, bool) or self.background not in (-1, 0, 1, 2):
+                raise StageError(f"{w}background must be 'auto', -1 (none), 0, 1 or 2 (a polynomial degree), got {self.background!r}")
+            set_("background", int(self.background))
         if not isinstance(self.accelerate, (bool, np.bool_)):
             raise StageError(f"{w}accelerate must be true or false, got {self.accelerate!r}")
         set_("accelerate", bool(self.accelerate))

@@ -28,9 +28,18 @@ import numpy as np
 
 from ..projectors import ViewReduction, jacobian, reduce_views
 
-__all__ = ["background_basis", "reduce_views_background", "profile_offset", "BACKGROUND_DEGREES"]
+__all__ = ["background_basis", "reduce_views_background", "profile_offset", "view_offset", "auto_background",
+           "BACKGROUND_DEGREES", "AUTO_OFFSET_SIGMA", "AUTO_DEGREE"]
 
 BACKGROUND_DEGREES = (0, 1, 2)
+# background = "auto": a background of degree AUTO_DEGREE is fitted when the per-view offset of the residual at the
+# first pass is above AUTO_OFFSET_SIGMA noise standard deviations (weighted RMS over the views). Chosen on the tuning
+# split of bench_accuracy.py (docs/method.md §5.10): without an air level the offset stays below 0.09 σ (40³ and 92³
+# cases, the first scale, the start poses; a misplaced sample keeps its projected mass), with an air level drifting by
+# 0.05 it is 0.5 σ or more. Its share of the residual's energy is no criterion: a large motion still to be found
+# makes it small (0.06 % at χ 25 for an offset of 0.6 σ).
+AUTO_OFFSET_SIGMA = 0.2
+AUTO_DEGREE = 1
 _CHUNK_BYTES = 256 * 2**20
 
 
@@ -64,6 +73,27 @@ def profile_offset(red: ViewReduction) -> ViewReduction:
         weight_sum=red.weight_sum, meas_sum=red.meas_sum, meas_sq_sum=red.meas_sq_sum,
         resid_sum=np.zeros_like(red.resid_sum), center=red.center, grad_sum=np.zeros_like(c),
     )
+
+
+def view_offset(red: ViewReduction, noise_variance: float) -> tuple[float, float]:
+    """(RMS per-view offset of the residual in noise standard deviations, its share of the residual's energy).
+
+    The offset of view k is ``Σ w ρ / Σ w``; its energy ``(Σ w ρ)² / Σ w``.
+    Both come from any reduction (the fused pass sums them anyway).
+    """
+    a = np.asarray(red.weight_sum, float)
+    e = np.asarray(red.resid_sum, float)
+    energy = float(np.sum(np.where(a > 0, e**2 / np.where(a > 0, a, 1.0), 0.0)))
+    total_w = float(a.sum())
+    rms = float(np.sqrt(energy / (total_w * noise_variance))) if total_w > 0 and noise_variance > 0 else 0.0
+    rss = float(np.sum(red.rss))
+    return rms, (energy / rss if rss > 0 else 0.0)
+
+
+def auto_background(red: ViewReduction, noise_variance: float):
+    """``(degree or None, offset in σ, share)``: what ``background = "auto"`` fits, judged on one reduction."""
+    rms, share = view_offset(red, noise_variance)
+    return (AUTO_DEGREE if rms >= AUTO_OFFSET_SIGMA else None), rms, share
 
 
 def reduce_views_background(volume, vol_geom, geom, measured, *, degree: int, weights=None, center=None,

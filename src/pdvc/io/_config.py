@@ -110,9 +110,10 @@ that type needs) are required; everything else has the default shown.
     # rcond = 1e-6              # eigenvalue ratio below which a direction is unobservable
     # oversample = 2            # correlation grid this many times finer than the reconstruction grid
     # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper)
-    # background = -1           # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane, 2 quadratic
+    # background = "auto"       # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane,
+                                # 2 quadratic; "auto": a plane when the residual's per-view offset is well above the noise
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
-    warmup = 1                  # translation-only rounds before a model with free rotations, per scale
+    warmup = 1                  # translation-only rounds before a model with free rotations, at the first scale
     # ... or the whole stage list, one table per stage (then no recipe parameter above):
     # [[calibration.stage]]
     # name = "warmup"           # every field of pdvc.calibration.Stage: name, basis, frame, fixed, method,
@@ -372,7 +373,7 @@ class CalibrationConfig:
     rcond: Optional[float] = None
     oversample: Optional[int] = None
     oversample_by: Optional[str] = None
-    background: Optional[int] = None
+    background: Union[int, str, None] = None
     center: Optional[tuple[float, float, float]] = None
     fix_scale: bool = True
     backend: str = "auto"
@@ -827,10 +828,14 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
     if accelerate is not None:
         kw["accelerate"] = _boolean(accelerate, w + "accelerate")
     background = t.pop("background")
-    if background is not None:
+    if background == "auto":
+        kw["background"] = "auto"
+    elif background is not None:
+        if isinstance(background, str):
+            raise ConfigError(f"calibration.background must be \"auto\", -1 (none), 0, 1 or 2 (a polynomial degree), got {_got(background)}")
         kw["background"] = _integer(background, w + "background", minimum=-1)
         if kw["background"] > 2:
-            raise ConfigError(f"calibration.background must be -1 (none), 0, 1 or 2 (a polynomial degree), got {_got(background)}")
+            raise ConfigError(f"calibration.background must be \"auto\", -1 (none), 0, 1 or 2 (a polynomial degree), got {_got(background)}")
     scales = t.pop("scales", d.scales)
     if scales == "auto":
         pass
