@@ -281,9 +281,11 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
         idx = int(k.split()[1])
         h = [e for e in hist if e.get("stage_index") == idx]
         steps.append((k, tm[k], f"stage {idx}", len(h), sum(int(e["n_iter"]) for e in h)))
+    if "zingers" in tm:
+        steps.append(("zingers (forward, recon if found)", tm["zingers"], "zingers", None, None))
     steps.append(("final (recon + residuals)", tm.get("final", 0.0), "final", None, None))
     steps.append(("assess", tm.get("assess", 0.0), "assess", None, None))
-    known = sum(tm.get(k, 0.0) for k in ["init", "stages", "final", "assess"])
+    known = sum(tm.get(k, 0.0) for k in ["init", "zingers", "stages", "final", "assess"])
     other = res.elapsed_s - known
     steps.append(("other: nominal recon, noise, trunc., motion", other, "nominal", None, None))
 

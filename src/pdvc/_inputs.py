@@ -55,7 +55,7 @@ def calibration_options(cal, det_shape, vol_shape=None) -> dict:
         stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **cal.recipe_parameters())
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
-        truncation=cal.truncation,
+        truncation=cal.truncation, zingers=cal.zingers,
     )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io._zingers import isolated_outliers
+
 __all__ = ["diagnose_residual", "ResidualDiagnosis"]
 
 
@@ -97,15 +99,8 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     r = np.where(w, r - rw[None, :, None], 0.0)
     vals = r[w]
     sigma = 1.4826 * float(np.median(np.abs(vals - np.median(vals)))) if vals.size else 0.0
-    out = w & (np.abs(r) > 6 * sigma) if sigma > 0 else np.zeros(r.shape, bool)
-    if out.any():  # isolated: no neighbour in the row or the column beyond 3 sigma (edges of a misplaced sample are lines)
-        big = np.abs(r) > 3 * sigma
-        nb = np.zeros(r.shape, bool)
-        nb[:, 1:, :] |= big[:, :-1, :]
-        nb[:, :-1, :] |= big[:, 1:, :]
-        nb[:, :, 1:] |= big[:, :, :-1]
-        nb[:, :, :-1] |= big[:, :, 1:]
-        out &= ~nb
+    # isolated: no 4-neighbour beyond 3 sigma (the edges of a misplaced sample are lines)
+    out = w & isolated_outliers(r, sigma, 6.0, ratio=np.inf) if sigma > 0 else np.zeros(r.shape, bool)
     e_out = float(np.sum(r[out] ** 2))
     rest = max(total - e_view - e_col - e_row - e_out, 0.0)
     e_noise = min(n_w * float(noise_variance), rest)

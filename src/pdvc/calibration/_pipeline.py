@@ -205,6 +205,7 @@ def calibrate(
     fix_scale: bool = True,
     weights=None,
     truncation: str = "auto",
+    zingers: str = "auto",
     noise_variance: Optional[float] = None,
     times=None,
     center=None,
@@ -249,6 +250,13 @@ def calibrate(
         no reconstruction on ``vol_geom`` can explain. ``"auto"`` does so
         when the nominal reconstruction shows material in the end slices
         (:func:`detect_truncation`).
+    zingers : {"auto", "off"}
+        ``"auto"``: find zingers, hot and dead pixels (isolated pixels far
+        from the reprojection of the nominal reconstruction,
+        :func:`pdvc.io.remove_zingers`) and replace them by the median of
+        their neighbours before calibrating; the volume is then
+        reconstructed again without them. The projections given are not
+        modified; the calibration and its final volume use the copy.
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -274,13 +282,16 @@ def calibrate(
         raise CalibrationError(f"init must be 'auto', 'axis' or 'none', got {init!r}")
     if truncation not in ("auto", "on", "off"):
         raise CalibrationError(f"truncation must be 'auto', 'on' or 'off', got {truncation!r}")
+    if zingers not in ("auto", "off"):
+        raise CalibrationError(f"zingers must be 'auto' or 'off', got {zingers!r}")
     stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings)
-    gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     emit(dict(event="reconstruct", what="nominal"))
     vol_initial = reconstruct(p, vol_geom, geom)
+    p, vol_initial, found_zingers = _zingers(zingers, p, vol_geom, geom, vol_initial, timings, poses)
+    gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     weights, trunc = _truncation(truncation, weights, geom, vol_geom, vol_initial)
 
     def state_checkpoint(state):
@@ -300,7 +311,7 @@ def calibrate(
     options = dict(
         recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
-        background=_background_text(drv),
+        background=_background_text(drv), zingers=found_zingers.describe() if found_zingers is not None else "not checked",
     )
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])
@@ -386,6 +397,31 @@ def _too_large(drv, offset_px, stages):
         log.warning(message)
         return Status.MOTION_TOO_LARGE, message
     return status, message
+
+
+def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
+    """(projections, nominal volume, ZingerReport or None): zingers replaced when ``mode`` is "auto".
+
+    Found on the residual against the nominal reconstruction (no extra reconstruction: a scan without zingers
+    costs one forward projection); when some were, once more against a reconstruction without them at the
+    coarse initialisation's poses (the ramp filter spreads a zinger over the reconstruction, which hides weaker
+    ones nearby, and a misplaced edge hides those on it). The nominal volume is then made again without them.
+    """
+    if mode == "off":
+        return p, vol_initial, None
+    from ..io import ZingerReport, remove_zingers
+
+    t0 = time.perf_counter()
+    p, total = remove_zingers(p, forward(vol_initial, vol_geom, geom))
+    if total.count:
+        g = geom if poses is None else geom.apply(poses)
+        p, again = remove_zingers(p, forward(reconstruct(p, vol_geom, g), vol_geom, g))
+        total = ZingerReport(total.count + again.count, total.fraction + again.fraction,
+                             max(total.views, again.views), total.sigma, total.threshold)
+        vol_initial = reconstruct(p, vol_geom, geom)
+    (log.warning if total.fraction > 1e-3 else log.info)("zingers: %s", total.describe())
+    timings["zingers"] = time.perf_counter() - t0
+    return p, vol_initial, total
 
 
 def _truncation(mode, weights, geom, vol_geom, vol_initial):

@@ -44,6 +44,7 @@ from ._preprocess import (
 )
 from ._projections import DataError, FormatError, InputFileError, RawScan, classify_values, read_projections
 from ._vendor import VendorGeometry, read_nikon, read_skyscan, read_vendor_geometry
+from ._zingers import ZingerReport, remove_zingers
 
 __all__ = [
     "Config", "ConfigError", "DataConfig", "GeometryConfig", "AngleRange", "VolumeConfig",
@@ -73,5 +74,5 @@ __all__ = [
     "atomic_write_npy",
     "atomic_write_text",
     "prepare_output_dir",
-    "run_fingerprint",
+    "run_fingerprint", "ZingerReport", "remove_zingers",
 ]

@@ -129,6 +129,8 @@ that type needs) are required; everything else has the default shown.
     init = "auto"               # "auto" | "axis" | "none": axis offset from opposite views first
     truncation = "auto"         # "auto" | "on" | "off": drop the rays that leave the volume through its top or
                                 # bottom face (a sample longer than the volume); "auto": when the sample reaches them
+    zingers = "auto"            # "auto" | "off": replace isolated pixels far from the reprojection of the nominal
+                                # reconstruction (zingers, hot and dead pixels) by their neighbours' median
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -380,6 +382,7 @@ class CalibrationConfig:
     init: str = "auto"
     noise: str = "image"
     truncation: str = "auto"
+    zingers: str = "auto"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
@@ -477,7 +480,7 @@ class Config:
             vol = VolumeConfig(tuple(vol_geom.shape), tuple(vol_geom.voxel_size), tuple(vol_geom.offset))
         cal = self.calibration
         if stages is not None:
-            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation")}
+            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation", "zingers")}
             cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
         return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
@@ -871,6 +874,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         init=_choice(t.pop("init", d.init), w + "init", ("auto", "axis", "none")),
         noise=_choice(t.pop("noise", d.noise), w + "noise", ("image", "counts")),
         truncation=_choice(t.pop("truncation", d.truncation), w + "truncation", ("auto", "on", "off")),
+        zingers=_choice(t.pop("zingers", d.zingers), w + "zingers", ("auto", "off")),
         **kw,
     )
     t.finish(_CALIBRATION_KEYS)

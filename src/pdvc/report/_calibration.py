@@ -94,8 +94,11 @@ def build_report(out, result, *, projections, angles, params_lab):
         summary[f"residual, {when} geometry"] = d.describe()
     if getattr(result, "truncation", None) is not None:
         summary["sample and volume"] = result.truncation.describe()
-    if "background" in (getattr(result, "options", None) or {}):
-        summary["background per view"] = result.options["background"]
+    options = getattr(result, "options", None) or {}
+    if "background" in options:
+        summary["background per view"] = options["background"]
+    if "zingers" in options:
+        summary["zingers, hot and dead pixels"] = options["zingers"]
     if asm is not None:
         summary["modes and uncertainties"] = (
             f"measured at the geometry returned, {asm.frame} frame, basis {', '.join(asm.basis_names)} "

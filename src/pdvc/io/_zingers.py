@@ -1,0 +1,183 @@
+"""Zingers, hot and dead pixels: isolated pixels that the reconstruction does not explain, replaced by a median.
+
+A zinger (a cosmic ray or a scattered photon hitting the detector) or a hot
+pixel is one pixel of one view that reads far brighter than its neighbours;
+in line integrals it is a deep, isolated dip (a dead pixel, an isolated
+peak). Rigid-motion correlation weighs every pixel by its squared residual:
+a fraction of a percent of such pixels is enough to steer the poses
+(``benchmarks/bench_accuracy.py --zingers``).
+
+They are found on the residual ``r = p - Π f`` of a reconstruction ``f``
+of the scan (FDK at the nominal geometry is enough): what the sample
+explains is gone, a misplaced edge is a line of large residual, a zinger is
+alone. Photon noise grows behind the sample (the variance of a line
+integral is ``exp(p) / i0``), so ``r`` minus its median per view is scaled
+by ``exp(-Π f / 2)`` before its robust standard deviation σ (1.4826 MAD) is
+taken over the scan. A pixel is a zinger when its scaled residual is above
+``k`` σ and none of its four neighbours is above 3 σ or a quarter of it (the
+ramp filter of the reconstruction spreads a little of a zinger to its
+neighbours); it is replaced by the median of its eight neighbours in the
+same view. Tomography toolkits remove
+outliers with a median filter and a threshold on the data alone (e.g.
+TomoPy's ``remove_outlier``): on fine structure (the 1–2 px struts of the
+benchmark's foams) that flags 300–1600 pixels of a clean 40³ scan and
+misses a quarter of the zingers; the residual flags none of the former.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import maximum_filter
+
+from ..errors import ShapeError
+
+__all__ = ["ZingerReport", "isolated_outliers", "remove_zingers", "ZINGER_SIGMA"]
+
+ZINGER_SIGMA = 6.0
+"""A zinger's residual is at least this many robust standard deviations."""
+
+_NEIGHBOUR_SIGMA = 3.0
+_NEIGHBOUR_RATIO = 2.5  # a zinger's neighbours hold at most this fraction of its residual (the FDK's ramp spreads a little)
+_SAMPLE = 2_000_000  # pixels the robust σ is taken on (evenly strided)
+_CHUNK = 32 * 2**20  # bytes of views filtered at a time
+
+
+@dataclass(frozen=True)
+class ZingerReport:
+    """What :func:`remove_zingers` found: the count, the fraction of pixels, the views touched and σ."""
+
+    count: int
+    fraction: float
+    views: int
+    sigma: float
+    threshold: float
+
+    def describe(self) -> str:
+        if not self.count:
+            return f"none found (no isolated pixel {self.threshold:g} robust std or more from the reprojection)"
+        return (f"{self.count} isolated pixel(s) ({100 * self.fraction:.3g}% of the pixels, in {self.views} view(s)) "
+                f"{self.threshold:g} robust std or more from the reprojection (zingers, hot or dead pixels), replaced "
+                "by the median of their neighbours")
+
+
+def isolated_outliers(z, sigma: float, k: float = ZINGER_SIGMA, ratio: float = _NEIGHBOUR_RATIO) -> np.ndarray:
+    """Pixels of ``z`` ``(n, rows, cols)`` beyond ``k σ`` whose four neighbours (same view) are all below
+    ``max(3 σ, |z| / ratio)``: alone, not on a line or a blob."""
+    a = np.abs(np.asarray(z))
+    out = a > k * sigma
+    if out.any():
+        nb = np.zeros(a.shape, a.dtype)
+        np.maximum(nb[:, 1:, :], a[:, :-1, :], out=nb[:, 1:, :])
+        np.maximum(nb[:, :-1, :], a[:, 1:, :], out=nb[:, :-1, :])
+        np.maximum(nb[:, :, 1:], a[:, :, :-1], out=nb[:, :, 1:])
+        np.maximum(nb[:, :, :-1], a[:, :, 1:], out=nb[:, :, :-1])
+        out &= nb < np.maximum(_NEIGHBOUR_SIGMA * sigma, a / ratio)
+    return out
+
+
+def _robust_sigma(z: np.ndarray) -> float:
+    flat = z.reshape(-1)
+    if flat.size > _SAMPLE:
+        flat = flat[:: flat.size // _SAMPLE + 1]
+    flat = flat[np.isfinite(flat)]
+    if flat.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(flat - np.median(flat))))
+
+
+def _scaled_residual(p, q) -> np.ndarray:
+    """The residual ``p - q`` of views, less its median per view, over the photon noise's ``exp(q / 2)``."""
+    r = np.asarray(p, np.float32) - np.asarray(q, np.float32)
+    r -= np.median(r.reshape(r.shape[0], -1), axis=1)[:, None, None]
+    return r * np.exp(-0.5 * np.clip(np.asarray(q, np.float32), -5.0, 20.0))
+
+
+def _seen_nearby(z: np.ndarray, sigma: float, first: int, count: int, alone: np.ndarray) -> np.ndarray:
+    """For views ``first .. first + count`` of ``z``: whether the sample's structure is there too in the next
+    views: within a pixel, a residual of the same sign above ``max(3 σ, |z| / ratio)`` in the view before or
+    after that is not itself alone (``alone``, a zinger there), or in both views (a misplaced small feature)."""
+    out = np.zeros((count,) + z.shape[1:], bool)
+    z_na = np.where(alone, 0.0, z)
+    filt = {name: maximum_filter(sign * arr, size=(1, 3, 3), mode="nearest")
+            for name, sign, arr in (("p", 1, z), ("n", -1, z), ("p_na", 1, z_na), ("n_na", -1, z_na))}
+    n = z.shape[0]
+    for j in range(count):
+        v = first + j
+        c = z[v]
+        lim = np.maximum(_NEIGHBOUR_SIGMA * sigma, np.abs(c) / _NEIGHBOUR_RATIO)
+        both = np.ones(c.shape, bool)
+        for w in (v - 1, v + 1):
+            if not 0 <= w < n:
+                both[:] = False
+                continue
+            out[j] |= np.where(c > 0, filt["p_na"][w], filt["n_na"][w]) > lim
+            both &= np.where(c > 0, filt["p"][w], filt["n"][w]) > lim
+        out[j] |= both
+    return out
+
+
+def _neighbour_median(p: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """The median of the eight neighbours (same view, edges clamped) of each pixel of ``hit``."""
+    v, r, c = np.nonzero(hit)
+    nr, nc = p.shape[1:]
+    vals = [p[v, np.clip(r + dr, 0, nr - 1), np.clip(c + dc, 0, nc - 1)]
+            for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+    return np.median(np.stack(vals, axis=1), axis=1)
+
+
+def remove_zingers(projections, reprojection, *, k: float = ZINGER_SIGMA) -> tuple[np.ndarray, ZingerReport]:
+    """Find zingers, hot and dead pixels in line integrals and replace them (module docstring).
+
+    Parameters
+    ----------
+    projections : (n_views, n_rows, n_cols) array
+        Line integrals; not modified.
+    reprojection : array of the same shape
+        ``Π f``: the forward projection of a reconstruction of them.
+    k : float
+        Threshold in robust standard deviations (default 6).
+
+    Returns
+    -------
+    (projections, ZingerReport)
+        ``projections`` itself when nothing was found, else a float32 copy
+        with each zinger replaced by the median of its eight neighbours.
+    """
+    p = np.asarray(projections)
+    q = np.asarray(reprojection)
+    if p.ndim != 3:
+        raise ShapeError(f"projections must have shape (n_views, n_rows, n_cols), got {p.shape}")
+    if q.shape != p.shape:
+        raise ShapeError(f"reprojection must have the projections' shape {p.shape}, got {q.shape}")
+    if not (k > _NEIGHBOUR_SIGMA):
+        raise ValueError(f"k must be above {_NEIGHBOUR_SIGMA} (the neighbours' threshold), got {k!r}")
+    n = p.shape[0]
+    step = max(1, int(_CHUNK // max(1, 4 * p.shape[1] * p.shape[2])))
+    pick = np.unique(np.linspace(0, n - 1, min(n, max(1, _SAMPLE // max(1, p.shape[1] * p.shape[2]))), dtype=int))
+    sigma = _robust_sigma(_scaled_residual(p[pick], q[pick]))
+    if not sigma > 0:
+        return p, ZingerReport(0, 0.0, 0, 0.0, float(k))
+    # pass 1: pixels alone in their view; a pixel alone in half the views or more is hot or dead (all views)
+    alone = np.zeros(p.shape, bool)
+    for s in range(0, n, step):
+        alone[s:s + step] = isolated_outliers(_scaled_residual(p[s:s + step], q[s:s + step]), sigma, k)
+    hot = alone.mean(axis=0) >= 0.5
+    # pass 2: a zinger is in one view only; the sample's own structure, which a misaligned reconstruction leaves
+    # as isolated spikes too, is still there in the next view, within a pixel
+    out, count, views = None, 0, 0
+    for s in range(0, n, step):
+        lo, hi = max(s - 1, 0), min(s + step + 1, n)
+        z = _scaled_residual(p[lo:hi], q[lo:hi])
+        hit = alone[s:s + step] & ~hot[None] & ~_seen_nearby(z, sigma, s - lo, min(step, n - s), alone[lo:hi])
+        hit |= hot[None]
+        if hit.any():
+            if out is None:
+                out = np.array(p, dtype=np.float32, copy=True)
+            block = out[s:s + step]
+            block[hit] = _neighbour_median(np.asarray(p[s:s + step], np.float32), hit)
+            count += int(hit.sum())
+            views += int(hit.any(axis=(1, 2)).sum())
+    rep = ZingerReport(count, count / float(p.size), views, sigma, float(k))
+    return (p if out is None else out), rep
