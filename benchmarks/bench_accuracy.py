@@ -352,6 +352,7 @@ def run_case(c: Case) -> dict:
     row["success"] = bool(res.success)
     row["truncation"] = str(res.options.get("truncation_found", ""))[:80]
     row["background"] = str(res.options.get("background", "")).split(":")[0]
+    row["offset_sigma"] = float(res.history[0].get("offset_sigma", float("nan"))) if res.history else float("nan")
     row["zingers"] = str(res.options.get("zingers", "")).split(" (")[0]
     row["worse"] = bool(row["err_pdvc"] > row["err_nominal"] + 1e-6 or row["snr_gain"] < -1e-6)
     return row

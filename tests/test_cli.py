@@ -138,6 +138,29 @@ def test_interrupted_within_a_scale_resumes_after_the_last_round(simulated, tmp_
     assert len(res.history) == 2 + len(rounds)
 
 
+def test_a_resumed_run_keeps_the_background_its_first_round_decided(simulated, tmp_path, caplog):
+    proj = np.load(simulated / "projections.npy")
+    geom = pdvc.VectorGeometry(np.load(simulated / "geometry_nominal.npy"), proj.shape[1:], "cone")
+    vg = pdvc.VolumeGeometry((32, 32, 32))
+    drifted = proj + np.linspace(0.0, 0.3, proj.shape[0], dtype=np.float32)[:, None, None]  # an air level that drifts
+    out = tmp_path / "run"
+
+    def stop_after_first_round(info):
+        if info.get("event") == "round" and info.get("iteration") == 0:
+            raise KeyboardInterrupt
+
+    opts = dict(scales=(1,), max_outer=3, tol_px=1e-9, oversample=1)
+    with pytest.raises(KeyboardInterrupt), caplog.at_level("INFO", logger="pdvc.calibration"):
+        pdvc.calibrate(drifted, geom, vg, out_dir=out, progress=stop_after_first_round, **opts)
+    assert "measured again" in caplog.text  # decided in the first round
+    caplog.clear()
+    with caplog.at_level("INFO", logger="pdvc.calibration"):
+        res = pdvc.calibrate(drifted, geom, vg, out_dir=out, resume=True, **opts)
+    assert "measured again" not in caplog.text  # read from the history, not decided again
+    assert len(res.history) == 3 and all(h["background"] == 1 for h in res.history)
+    assert res.options["background"].startswith("a plane per view")
+
+
 def test_pipeline_bad_input_is_named(simulated):
     proj = np.load(simulated / "projections.npy")
     geom = pdvc.VectorGeometry(np.load(simulated / "geometry_nominal.npy"), proj.shape[1:], "cone")

@@ -309,12 +309,16 @@ def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log
     c = make_case("offset", n=24, n_views=48)
     kw = dict(max_outer=2, fixed=("rx", "ry", "rz"))
     clean = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, **kw)
-    assert all(h["background"] == -1 for h in clean.history)
+    assert all(h["background"] == -1 for h in clean.history) and clean.history[0]["offset_sigma"] < 0.1
     assert clean.options["background"].startswith("none")
     p = c.scan.projections + np.linspace(0.0, 0.3, c.scan.geometry.n_views, dtype=np.float32)[:, None, None]
     with caplog.at_level("WARNING", logger="pdvc.calibration"):
         auto = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, **kw)
-    assert all(h["background"] == 1 for h in auto.history)  # decided at the first round, kept at every stage
+    # decided at the first round, on the offset its poses left (that round is then measured again with it), and
+    # kept at every later round and stage
+    assert auto.history[0]["offset_sigma"] > 0.2
+    assert all(h["background"] == 1 for h in auto.history)
+    assert all(h["offset_sigma"] < 1e-6 for h in auto.history[1:])
     assert auto.options["background"].startswith("a plane per view")
     assert "background = 0" not in caplog.text
     caplog.clear()

@@ -31,6 +31,7 @@ from ..correlation import (
     shannon_entropy,
     view_angles,
 )
+from ..correlation._background import auto_background
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..recon import cgls, fbp, fdk, nonneg_ls, refined_grid, spline_upsample
 from ..status import Status
@@ -88,7 +89,9 @@ class DriverResult(PosesResult):
         guard runs), ``increment_px``, ``increment_max_px`` (full-resolution
         pixels), ``n_iter`` (Jacobian passes), ``engine_status``,
         ``elapsed_s``, ``background`` (the degree of the background per view
-        fitted, -1: none).
+        fitted, -1: none), ``offset_sigma`` (the per-view offset, in noise
+        std, that the poses measured without a background left; 0 when the
+        round fitted one from the start).
     stages : tuple of StageOutcome
     correlation : CorrelationResult or None
         The measurement whose poses were kept (None if no round was kept).
@@ -100,11 +103,11 @@ class DriverResult(PosesResult):
         when the poses returned were never reconstructed (a last round that
         converged).
     background : int, None or "auto"
-        What the stages with ``background = "auto"`` fitted: a degree, None
-        (none), or ``"auto"`` when no round decided it.
+        What the stages with ``background = "auto"`` fitted from their second
+        round on: a degree, None (none), or ``"auto"`` when no round decided.
     offset_sigma : float
-        The per-view offset (in noise standard deviations) that decision
-        was made on (nan if none).
+        The per-view offset (in noise standard deviations) the first round's
+        poses left, on which that was decided (nan if none).
     """
 
     poses: Poses
@@ -202,15 +205,23 @@ class _Context:
         self.offset_sigma = float("nan")
 
     def background(self, stage: Stage):
-        """The ``background`` a stage's correlation gets: its own, or the run's decision for ``"auto"``."""
+        """The ``background`` a stage's correlation gets: its own, or the run's decision for ``"auto"`` (none until then)."""
         if stage.background == "auto":
-            return self.auto_background
+            return None if self.auto_background == "auto" else self.auto_background
         return None if stage.background < 0 else int(stage.background)
 
-    def decided(self, stage: Stage, res: CorrelationResult) -> None:
-        """Keep the first ``"auto"`` decision for the rest of the run."""
-        if stage.background == "auto" and self.auto_background == "auto":
-            self.auto_background, self.offset_sigma = res.background, float(res.offset_sigma)
+    def decided(self, stage: Stage, res: CorrelationResult) -> bool:
+        """``"auto"``, the first round: whether it decided to fit a background, because the per-view offset its poses
+        left is above ``AUTO_OFFSET_SIGMA`` (``docs/method.md`` §5.10); the decision holds for the rest of the run."""
+        if stage.background != "auto" or self.auto_background != "auto":
+            return False
+        self.offset_sigma = float(res.offset_sigma)
+        self.auto_background = auto_background(self.offset_sigma)
+        if self.auto_background is None:
+            return False
+        log.info("background per view of degree %d fitted (background = 'auto'): the first round's poses left a per-view "
+                 "offset of %.2f noise std; the round is measured again with it", self.auto_background, self.offset_sigma)
+        return True
 
     def at_scale(self, s: int):
         """(projections, geometry, grid, weights, γ²) at scale ``s``, made once."""
@@ -278,9 +289,12 @@ def run_stages(
     )
     poses = Poses.identity(geom.n_views) if poses is None else poses
     history = list(history)
-    for h in history:  # a resumed run keeps the decision its first rounds made
-        if "background" in h and 0 <= int(h.get("stage_index", -1)) < len(stages) and stages[int(h["stage_index"])].background == "auto":
-            ctx.auto_background = None if int(h["background"]) < 0 else int(h["background"])
+    for h in history:  # a resumed run keeps the decision its first round made
+        if "offset_sigma" in h and 0 <= int(h.get("stage_index", -1)) < len(stages) and stages[int(h["stage_index"])].background == "auto":
+            b = int(h.get("background", -1))
+            ctx.offset_sigma = float(h["offset_sigma"])
+            ctx.auto_background = b if b >= 0 else auto_background(ctx.offset_sigma)
+            break
     outcomes: list = []
     kept = None
     guard_volume = fit_volume = None
@@ -367,7 +381,10 @@ class _StageRun:
                     self.poses, self.kept = prev_poses, prev_kept
                     break
             res = self._correlate()
-            self.ctx.decided(st, res)
+            self.offset_sigma, self.extra_passes = float(res.offset_sigma), 0  # the history holds the first measurement's
+            if self.ctx.decided(st, res):  # a background from now on: this round is measured again with it
+                self.extra_passes = int(res.n_iter)
+                res = self._correlate(again=True)
             chi_before = float(res.chi_history[0])
             if "consistency" in st.guards:
                 if self.best is None or chi_before < self.best[0]:
@@ -418,13 +435,15 @@ class _StageRun:
         self.ent_best = entropy if self.ent_best is None else min(self.ent_best, entropy)
         return entropy, False
 
-    def _correlate(self) -> CorrelationResult:
+    def _correlate(self, again: bool = False) -> CorrelationResult:
+        """The round's measurement against a fresh reconstruction at its poses (``again``: the same one)."""
         st, ctx = self.stage, self.ctx
         p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
         vg_c = refined_grid(vg, st.oversample)
-        self.volume = None  # at most two volumes alive: the best round's and this one
-        vol = correlation_volume(p, vg, g.apply(self.poses), st)
-        self.volume = (self.poses, vol)
+        if not again:
+            self.volume = None  # at most two volumes alive: the best round's and this one
+            self.volume = (self.poses, correlation_volume(p, vg, g.apply(self.poses), st))
+        vol = self.volume[1]
         # a fresh reconstruction that already fits worse than the best ends the stage: measure nothing more
         limit = self.best[0] * (1 + st.diverge_tol) if "consistency" in st.guards and self.best is not None else None
         return correlate(
@@ -441,9 +460,9 @@ class _StageRun:
         entry = dict(
             iteration=len(self.history), stage=st.name, stage_index=self.index, scale=st.scale, round=r, chi_before=chi_before,
             chi_after=float(res.chi), snr_before=float(res.snr_history[0]), snr=float(res.snr_history[-1]),
-            entropy=entropy, increment_px=inc, increment_max_px=inc_max, n_iter=int(res.n_iter),
+            entropy=entropy, increment_px=inc, increment_max_px=inc_max, n_iter=int(res.n_iter) + self.extra_passes,
             engine_status=Status(res.status).name.lower(), elapsed_s=time.perf_counter() - self.t_round,
-            background=-1 if res.background is None else int(res.background),
+            background=-1 if res.background is None else int(res.background), offset_sigma=self.offset_sigma,
         )
         self.history.append(entry)
         self.n_rounds += 1

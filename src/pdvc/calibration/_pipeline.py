@@ -468,9 +468,9 @@ def _background_text(drv) -> str:
     if b == "auto":
         return "as each stage says (no stage decided 'auto')"
     if b is None:
-        return f"none: the residual's per-view offset was {off:.2g} noise std at the first round (background = 'auto')"
-    return (f"{_BACKGROUND_NAMES[b]} per view fitted with the motion: the residual's per-view offset was {off:.2g} noise std "
-            "at the first round (background = 'auto'; an air level or flat field that drifts)")
+        return f"none: the first round's poses left a per-view offset of {off:.2g} noise std (background = 'auto')"
+    return (f"{_BACKGROUND_NAMES[b]} per view fitted with the motion: the first round's poses left a per-view offset of "
+            f"{off:.2g} noise std (background = 'auto'; an air level or flat field that drifts)")
 
 
 def _background_of(stage: Stage, auto_background):

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..status import Status
 from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
-from ._background import BACKGROUND_DEGREES, auto_background, profile_offset, reduce_views_background
+from ._background import BACKGROUND_DEGREES, reduce_views_background, view_offset
 from ._bases import TemporalBasis, make_basis
 from ._frames import lab_to_sample_map, view_angles
 from ._noise import estimate_noise_variance
@@ -150,9 +150,11 @@ class CorrelationResult:
     background : int or None
         Degree of the background per view that was fitted (None: none).
     offset_sigma : float
-        ``background="auto"``: the RMS per-view offset of the residual at the
-        first pass, in noise standard deviations, on which the choice was
-        made (nan otherwise).
+        The per-view offset of the residual at the poses returned (weighted
+        RMS over the views, in noise standard deviations): what the motion
+        did not explain of an air level or a drifting flat field (0 when a
+        background was fitted). The calibration's ``background = "auto"``
+        reads it (:func:`pdvc.correlation._background.view_offset`).
     """
 
     geometry: VectorGeometry
@@ -178,7 +180,7 @@ class CorrelationResult:
     message: str
     scale_history: tuple = ()
     background: Optional[int] = None
-    offset_sigma: float = float("nan")
+    offset_sigma: float = 0.0
 
     @property
     def chi(self) -> float:
@@ -239,25 +241,12 @@ class _Problem:
     gamma2: float
     backend: str
     points: np.ndarray
-    n_pass: int = 0  # the passes of the measurement (max_iter counts them)
-    extra_pass: int = 0  # and the ones made for something else (background = "auto" redoing its first pass)
-    background: Any = None  # degree of the smooth background per view profiled out (None: none; "auto": decided at the first pass)
-    offset_sigma: float = float("nan")  # "auto": the RMS per-view offset of the first pass's residual, in σ
+    n_pass: int = 0
+    background: Optional[int] = None  # degree of the smooth background per view profiled out (None: none)
 
     def reduce(self, rv, t) -> ViewReduction:
         self.n_pass += 1
         g = self.geom.apply_poses(rv, t)
-        if self.background == "auto":
-            red = reduce_views(self.volume, self.vol_geom, g, self.projections, weights=self.weights, center=self.center,
-                               backend=self.backend)
-            self.background, self.offset_sigma, share = auto_background(red, self.gamma2)
-            if self.background is None:
-                return red
-            log.info("correlate: background per view of degree %d fitted (background = 'auto'): the residual's per-view "
-                     "offset is %.2f noise std and %.0f%% of its energy", self.background, self.offset_sigma, 100 * share)
-            if self.background == 0:
-                return profile_offset(red)
-            self.extra_pass += 1
         if self.background is not None:
             return reduce_views_background(self.volume, self.vol_geom, g, self.projections, degree=self.background,
                                            weights=self.weights, center=self.center, backend=self.backend)
@@ -451,19 +440,14 @@ def correlate(
         (the calibration driver's consistency guard: a round whose fresh
         reconstruction already fits worse than the best is not measured).
         Single scale only.
-    background : {None, "auto", 0, 1, 2}
+    background : {None, 0, 1, 2}
         Also fit a smooth background per view, a polynomial of this degree
         in the detector coordinates (0: an offset per view, e.g. an air level
         that drifts; 2: up to quadratic, e.g. the attenuation of material
         outside the volume), profiled out of the normal equations
         (``pdvc.correlation._background``). χ and the SNR are then those of
         the residual after it. Degree 0 costs nothing extra; 1 and 2 compute
-        the sensitivity images (threaded, by chunks of views). ``"auto"``
-        decides at the first pass: degree ``AUTO_DEGREE`` (1) when the
-        residual's per-view offset (weighted RMS over the views) is above
-        ``AUTO_OFFSET_SIGMA`` (0.2) noise standard deviations
-        (:func:`pdvc.correlation._background.auto_background`), none
-        otherwise; ``result.background`` says which.
+        the sensitivity images (threaded, by chunks of views).
 
     Returns
     -------
@@ -546,12 +530,12 @@ def correlate(
         snr_after=red.snr_db(),
         noise_variance=gamma2,
         observability=obs,
-        n_iter=prob.n_pass + prob.extra_pass,
+        n_iter=prob.n_pass,
         status=status,
         message=status.message,
-        scale_history=((1, chi_hist[0], chi_hist[-1], prob.n_pass + prob.extra_pass),),
+        scale_history=((1, chi_hist[0], chi_hist[-1], prob.n_pass),),
         background=prob.background,
-        offset_sigma=prob.offset_sigma,
+        offset_sigma=view_offset(red, gamma2)[0],
     )
 
 
@@ -567,8 +551,8 @@ def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, w
         raise ShapeError(f"projections must have shape {(n,) + geom.det_shape}, got {s.shape}")
     if frame not in ("sample", "lab"):
         raise CorrelationError(f"frame must be 'sample' or 'lab', got {frame!r}")
-    if background is not None and background != "auto" and (isinstance(background, bool) or background not in BACKGROUND_DEGREES):
-        raise CorrelationError(f"background must be None, 'auto' or a polynomial degree in {BACKGROUND_DEGREES}, got {background!r}")
+    if background is not None and (isinstance(background, bool) or background not in BACKGROUND_DEGREES):
+        raise CorrelationError(f"background must be None or a polynomial degree in {BACKGROUND_DEGREES}, got {background!r}")
     free = np.ones(6, bool)
     for name in fixed:
         if name not in POSE_PARAMETERS:
@@ -590,7 +574,7 @@ def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, w
         volume=vol, vol_geom=vol_geom, projections=s, geom=geom, weights=weights, center=c,
         T=lab_to_sample_map(geom) if frame == "lab" else None, free=free, scale=_scaling(radius), gamma2=gamma2,
         backend=backend, points=sample_points(vol_geom, 3, fraction=0.8),
-        background=background if background in (None, "auto") else int(background),
+        background=None if background is None else int(background),
     )
     return prob, basis_obj
 
