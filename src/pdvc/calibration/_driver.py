@@ -89,9 +89,10 @@ class DriverResult(PosesResult):
         guard runs), ``increment_px``, ``increment_max_px`` (full-resolution
         pixels), ``n_iter`` (Jacobian passes), ``engine_status``,
         ``elapsed_s``, ``background`` (the degree of the background per view
-        fitted, -1: none), ``offset_sigma`` (the per-view offset, in noise
-        std, that the poses measured without a background left; 0 when the
-        round fitted one from the start).
+        fitted, -1: none), ``offset_sigma`` (how much the per-view offset of
+        the residual varies from view to view, RMS in noise std of the
+        full-resolution projections, at the poses measured without a
+        background; 0 when the round fitted one from the start).
     stages : tuple of StageOutcome
     correlation : CorrelationResult or None
         The measurement whose poses were kept (None if no round was kept).
@@ -210,12 +211,18 @@ class _Context:
             return None if self.auto_background == "auto" else self.auto_background
         return None if stage.background < 0 else int(stage.background)
 
+    @staticmethod
+    def full_resolution_sigma(offset_sigma: float, scale: int) -> float:
+        """An offset in noise std at ``scale`` in noise std of the full-resolution projections (coarse-graining
+        lowers the noise, not the offset)."""
+        return float(offset_sigma) * float(np.sqrt(coarse_noise_factor(scale)))
+
     def decided(self, stage: Stage, res: CorrelationResult) -> bool:
         """``"auto"``, the first round: whether it decided to fit a background, because the per-view offset its poses
         left is above ``AUTO_OFFSET_SIGMA`` (``docs/method.md`` §5.10); the decision holds for the rest of the run."""
         if stage.background != "auto" or self.auto_background != "auto":
             return False
-        self.offset_sigma = float(res.offset_sigma)
+        self.offset_sigma = self.full_resolution_sigma(res.offset_sigma, stage.scale)
         self.auto_background = auto_background(self.offset_sigma)
         if self.auto_background is None:
             return False
@@ -381,7 +388,8 @@ class _StageRun:
                     self.poses, self.kept = prev_poses, prev_kept
                     break
             res = self._correlate()
-            self.offset_sigma, self.extra_passes = float(res.offset_sigma), 0  # the history holds the first measurement's
+            # the history holds the first measurement's offset, in full-resolution noise std
+            self.offset_sigma, self.extra_passes = self.ctx.full_resolution_sigma(res.offset_sigma, st.scale), 0
             if self.ctx.decided(st, res):  # a background from now on: this round is measured again with it
                 self.extra_passes = int(res.n_iter)
                 res = self._correlate(again=True)

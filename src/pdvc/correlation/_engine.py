@@ -150,10 +150,10 @@ class CorrelationResult:
     background : int or None
         Degree of the background per view that was fitted (None: none).
     offset_sigma : float
-        The per-view offset of the residual at the poses returned (weighted
-        RMS over the views, in noise standard deviations): what the motion
-        did not explain of an air level or a drifting flat field (0 when a
-        background was fitted). The calibration's ``background = "auto"``
+        How much the per-view offset of the residual at the poses returned
+        varies from view to view (weighted RMS about its mean, in noise
+        standard deviations): what the motion did not explain of an air
+        level or a flat field that drifts (0 when a background was fitted). The calibration's ``background = "auto"``
         reads it (:func:`pdvc.correlation._background.view_offset`).
     """
 
