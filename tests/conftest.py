@@ -2,10 +2,34 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import pdvc
+
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@contextmanager
+def benchmark_module(name: str):
+    """``benchmarks/<name>.py`` imported as a module (skips the test where the checkout has no benchmarks)."""
+    path = BENCHMARKS / f"{name}.py"
+    if not path.exists():
+        pytest.skip(f"benchmarks/{name}.py not in this checkout")
+    spec = importlib.util.spec_from_file_location(f"pdvc_bench_{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up
+    try:
+        spec.loader.exec_module(mod)
+        yield mod
+    finally:
+        sys.modules.pop(spec.name, None)
 
 
 def gaussian_blob_volume(vol_geom, mean, sigma, amplitude=1.0):

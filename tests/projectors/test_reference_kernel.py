@@ -2,28 +2,19 @@
 integrals as pdvc.forward: a different discretisation (trilinear ray-marching
 against Joseph plane sampling), so they agree to a loose tolerance only."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 import pdvc
 from pdvc.projectors import forward
 
-from ..conftest import gaussian_blob_line_integrals, gaussian_blob_volume, random_geometry
-
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "_reference.py"
+from ..conftest import benchmark_module, gaussian_blob_line_integrals, gaussian_blob_volume, random_geometry
 
 
 @pytest.fixture(scope="module")
 def reference():
-    if not _PATH.exists():
-        pytest.skip("benchmarks/_reference.py not in this checkout")
-    spec = importlib.util.spec_from_file_location("pdvc_bench_reference", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    with benchmark_module("_reference") as mod:
+        yield mod
 
 
 def _rel_l2(a, b):

@@ -7,27 +7,15 @@ the analytic projector; 0.2 % of the pixels of every view are zingers.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_accuracy.py"
+from ..conftest import benchmark_module
 
 
 @pytest.fixture(scope="module")
 def bench():
-    if not _PATH.exists():
-        pytest.skip("benchmarks/bench_accuracy.py not in this checkout")
-    spec = importlib.util.spec_from_file_location("pdvc_bench_accuracy", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclasses look their module up
-    try:
-        spec.loader.exec_module(mod)
+    with benchmark_module("bench_accuracy") as mod:
         yield mod
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def _error(bench, fraction: float, **options) -> dict:

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 
 from ..errors import ShapeError
+from ._preprocess import _robust_std
 
 __all__ = ["ZingerReport", "isolated_outliers", "remove_zingers", "ZINGER_SIGMA"]
 
@@ -75,16 +76,6 @@ def isolated_outliers(z, sigma: float, k: float = ZINGER_SIGMA, ratio: float = _
         np.maximum(nb[:, :, :-1], a[:, :, 1:], out=nb[:, :, :-1])
         out &= nb < np.maximum(_NEIGHBOUR_SIGMA * sigma, a / ratio)
     return out
-
-
-def _robust_sigma(z: np.ndarray) -> float:
-    flat = z.reshape(-1)
-    if flat.size > _SAMPLE:
-        flat = flat[:: flat.size // _SAMPLE + 1]
-    flat = flat[np.isfinite(flat)]
-    if flat.size == 0:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(flat - np.median(flat))))
 
 
 def _scaled_residual(p, q) -> np.ndarray:
@@ -156,7 +147,7 @@ def remove_zingers(projections, reprojection, *, k: float = ZINGER_SIGMA) -> tup
     n = p.shape[0]
     step = max(1, int(_CHUNK // max(1, 4 * p.shape[1] * p.shape[2])))
     pick = np.unique(np.linspace(0, n - 1, min(n, max(1, _SAMPLE // max(1, p.shape[1] * p.shape[2]))), dtype=int))
-    sigma = _robust_sigma(_scaled_residual(p[pick], q[pick]))
+    sigma = _robust_std(_scaled_residual(p[pick], q[pick]), _SAMPLE)
     if not sigma > 0:
         return p, ZingerReport(0, 0.0, 0, 0.0, float(k))
     # pass 1: pixels alone in their view; a pixel alone in half the views or more is hot or dead (all views)
