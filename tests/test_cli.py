@@ -69,6 +69,7 @@ def test_cli_simulate_inspect_calibrate_reconstruct(simulated, tmp_path, capsys)
     html = (out / "report.html").read_text()
     assert "snr_per_view.png" in html and "entropy" in html
     assert "zingers, hot and dead pixels" in html
+    assert ("before the background per view" in html) == ("a plane per view fitted" in html)
     assert "background per view" in html and "background = &#x27;auto&#x27;" in html.replace("&#39;", "&#x27;")
     # the written config reruns: it is the fully resolved one
     cfg2 = pdvc.io.load_config(out / "config.toml")

@@ -90,8 +90,11 @@ def build_report(out, result, *, projections, angles, params_lab):
     }
     if result.initial_offset_px is not None:
         summary["coarse axis offset (px)"] = result.initial_offset_px
+    fitted = str((getattr(result, "options", None) or {}).get("background", "")).startswith(("an ", "a "))
     for when, d in zip(("nominal", "returned"), getattr(result, "residual", ())):
-        summary[f"residual, {when} geometry"] = d.describe()
+        # the diagnosis is of the data against the volume: a background the correlation fitted is still in it
+        summary[f"residual, {when} geometry"] = d.describe() + (" (before the background per view fitted with the motion)"
+                                                                 if fitted and when == "returned" else "")
     if getattr(result, "truncation", None) is not None:
         summary["sample and volume"] = result.truncation.describe()
     options = getattr(result, "options", None) or {}
