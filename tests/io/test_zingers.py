@@ -100,3 +100,17 @@ def test_calibrate_takes_zingers_out_and_says_so(case):
     assert pdvc.calibrate(pz, g, vg, max_outer=2, zingers="off").options["zingers"] == "not checked"
     with pytest.raises(pdvc.calibration.CalibrationError, match="zingers"):
         pdvc.calibrate(p, g, vg, zingers="on")
+
+
+def test_a_long_scan_is_checked_on_every_eighth_view_first():
+    """64 views or more: a scan without zingers costs the forward projection of every 8th view; with zingers the
+    probe finds them and all views are checked."""
+    c = make_case("offset", n=24, n_views=72)
+    p, g, vg = c.scan.projections, c.scan.geometry, c.vol_geom
+    clean = pdvc.calibrate(p, g, vg, max_outer=1)
+    assert clean.options["zingers"].startswith("none found on every 8th view")
+    assert clean.timings["zingers"] < clean.timings["final"]
+    pz, hit = _zingers(p, 0.003)
+    found = pdvc.calibrate(pz, g, vg, max_outer=1)
+    n_found = int(found.options["zingers"].split()[0])
+    assert 0.75 * hit.sum() < n_found < 1.5 * hit.sum()

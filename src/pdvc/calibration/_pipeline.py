@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -399,11 +399,15 @@ def _too_large(drv, offset_px, stages):
     return status, message
 
 
+_ZINGER_PROBE_STEP = 8
+
+
 def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
     """(projections, nominal volume, ZingerReport or None): zingers replaced when ``mode`` is "auto".
 
-    Found on the residual against the nominal reconstruction (no extra reconstruction: a scan without zingers
-    costs one forward projection); when some were, once more against a reconstruction without them at the
+    Found on the residual against the nominal reconstruction (no extra reconstruction), on every
+    ``_ZINGER_PROBE_STEP``-th view first (a scan without zingers costs that forward projection; zingers
+    are spread over the views, a hot pixel is in all of them), then on all views; when some were, once more against a reconstruction without them at the
     coarse initialisation's poses (the ramp filter spreads a zinger over the reconstruction, which hides weaker
     ones nearby, and a misplaced edge hides those on it). The nominal volume is then made again without them.
     """
@@ -412,6 +416,15 @@ def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
     from ..io import ZingerReport, remove_zingers
 
     t0 = time.perf_counter()
+    n = geom.n_views
+    if n >= 8 * _ZINGER_PROBE_STEP:  # every k-th view first: on a scan without zingers that is all it costs
+        sub = slice(None, None, _ZINGER_PROBE_STEP)
+        _, probe = remove_zingers(p[sub], forward(vol_initial, vol_geom, geom[sub]))
+        if not probe.count:
+            probe = replace(probe, every=_ZINGER_PROBE_STEP)
+            log.info("zingers: %s", probe.describe())
+            timings["zingers"] = time.perf_counter() - t0
+            return p, vol_initial, probe
     p, total = remove_zingers(p, forward(vol_initial, vol_geom, geom))
     if total.count:
         g = geom if poses is None else geom.apply(poses)

@@ -54,10 +54,12 @@ class ZingerReport:
     views: int
     sigma: float
     threshold: float
+    every: int = 1  # checked on every k-th view only
 
     def describe(self) -> str:
         if not self.count:
-            return f"none found (no isolated pixel {self.threshold:g} robust std or more from the reprojection)"
+            where = f" on every {self.every}th view" if self.every > 1 else ""
+            return f"none found{where} (no isolated pixel {self.threshold:g} robust std or more from the reprojection)"
         return (f"{self.count} isolated pixel(s) ({100 * self.fraction:.3g}% of the pixels, in {self.views} view(s)) "
                 f"{self.threshold:g} robust std or more from the reprojection (zingers, hot or dead pixels), replaced "
                 "by the median of their neighbours")
