@@ -101,7 +101,7 @@ def test_the_result_reports_the_per_view_offset_its_poses_leave(case):
     assert auto_background(found.offset_sigma) == 1
     # the number is the one view_offset reads off the reduction at the poses returned
     red = reduce_views(vol, vg, found.geometry, p + drift, center=vg.offset)
-    assert view_offset(red, gamma2)[0] == pytest.approx(found.offset_sigma, rel=1e-6)
+    assert view_offset(red, gamma2) == pytest.approx(found.offset_sigma, rel=1e-6)
     fitted = correlate(vol, vg, p + drift, g, background=1, **kw)
     assert fitted.background == 1 and fitted.offset_sigma < 1e-6
     assert found.background is None

@@ -104,8 +104,9 @@ class DriverResult(PosesResult):
         when the poses returned were never reconstructed (a last round that
         converged).
     background : int, None or "auto"
-        What the stages with ``background = "auto"`` fitted from their second
-        round on: a degree, None (none), or ``"auto"`` when no round decided.
+        What the stages with ``background = "auto"`` fitted (from their first
+        round, measured again once decided): a degree, None (none), or
+        ``"auto"`` when no round decided.
     offset_sigma : float
         The per-view offset (in noise standard deviations) the first round's
         poses left, on which that was decided (nan if none).
@@ -121,6 +122,14 @@ class DriverResult(PosesResult):
     fit_volume: Optional[tuple] = None
     background: Any = "auto"
     offset_sigma: float = float("nan")
+
+
+def stage_background(stage: Stage, decided):
+    """The background degree a stage fits (None: none): its own, or for ``"auto"`` what the run ``decided`` (a degree,
+    None, or ``"auto"`` while undecided: none)."""
+    if stage.background == "auto":
+        return decided if isinstance(decided, int) else None
+    return None if stage.background < 0 else int(stage.background)
 
 
 def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0) -> np.ndarray:
@@ -205,24 +214,19 @@ class _Context:
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
         self.offset_sigma = float("nan")
 
-    def background(self, stage: Stage):
-        """The ``background`` a stage's correlation gets: its own, or the run's decision for ``"auto"`` (none until then)."""
-        if stage.background == "auto":
-            return None if self.auto_background == "auto" else self.auto_background
-        return None if stage.background < 0 else int(stage.background)
-
     @staticmethod
     def full_resolution_sigma(offset_sigma: float, scale: int) -> float:
         """An offset in noise std at ``scale`` in noise std of the full-resolution projections (coarse-graining
         lowers the noise, not the offset)."""
         return float(offset_sigma) * float(np.sqrt(coarse_noise_factor(scale)))
 
-    def decided(self, stage: Stage, res: CorrelationResult) -> bool:
+    def decided(self, stage: Stage, offset_sigma: float) -> bool:
         """``"auto"``, the first round: whether it decided to fit a background, because the per-view offset its poses
-        left is above ``AUTO_OFFSET_SIGMA`` (``docs/method.md`` §5.10); the decision holds for the rest of the run."""
+        left (``offset_sigma``, full-resolution noise std) is above ``AUTO_OFFSET_SIGMA`` (``docs/method.md`` §5.10);
+        the decision holds for the rest of the run."""
         if stage.background != "auto" or self.auto_background != "auto":
             return False
-        self.offset_sigma = self.full_resolution_sigma(res.offset_sigma, stage.scale)
+        self.offset_sigma = offset_sigma
         self.auto_background = auto_background(self.offset_sigma)
         if self.auto_background is None:
             return False
@@ -390,7 +394,7 @@ class _StageRun:
             res = self._correlate()
             # the history holds the first measurement's offset, in full-resolution noise std
             self.offset_sigma, self.extra_passes = self.ctx.full_resolution_sigma(res.offset_sigma, st.scale), 0
-            if self.ctx.decided(st, res):  # a background from now on: this round is measured again with it
+            if self.ctx.decided(st, self.offset_sigma):  # a background from now on: this round is measured again with it
                 self.extra_passes = int(res.n_iter)
                 res = self._correlate(again=True)
             chi_before = float(res.chi_history[0])
@@ -460,7 +464,7 @@ class _StageRun:
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
             max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
             noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend, max_start_chi=limit,
-            background=ctx.background(st),
+            background=stage_background(st, ctx.auto_background),
         )
 
     def _record(self, r, res, chi_before, entropy, inc, inc_max):

@@ -31,7 +31,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._driver import PosesResult, correlation_volume, data_at_scale, reconstruct, refined_grid, run_stages
+from ._driver import PosesResult, correlation_volume, data_at_scale, reconstruct, refined_grid, run_stages, stage_background
 from ._outer import gauge_text
 from ._stages import Stage, StageError, recipe_stages
 
@@ -407,9 +407,10 @@ def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
 
     Found on the residual against the nominal reconstruction (no extra reconstruction), on every
     ``_ZINGER_PROBE_STEP``-th view first (a scan without zingers costs that forward projection; zingers
-    are spread over the views, a hot pixel is in all of them), then on all views; when some were, once more against a reconstruction without them at the
-    coarse initialisation's poses (the ramp filter spreads a zinger over the reconstruction, which hides weaker
-    ones nearby, and a misplaced edge hides those on it). The nominal volume is then made again without them.
+    are spread over the views, a hot pixel is in all of them), then on all views. When some were, once
+    more against a reconstruction without them at the coarse initialisation's poses (the ramp filter
+    spreads a zinger over the reconstruction, which hides weaker ones nearby, and a misplaced edge
+    hides those on it); the nominal volume is then made again without them.
     """
     if mode == "off":
         return p, vol_initial, None
@@ -484,13 +485,6 @@ def _background_text(drv) -> str:
         return f"none: the first round's poses left a per-view offset of {off:.2g} noise std (background = 'auto')"
     return (f"{_BACKGROUND_NAMES[b]} per view fitted with the motion: the first round's poses left a per-view offset of "
             f"{off:.2g} noise std (background = 'auto'; an air level or flat field that drifts)")
-
-
-def _background_of(stage: Stage, auto_background):
-    """The degree a stage fitted (None: none), with the run's decision for ``background = "auto"``."""
-    if stage.background == "auto":
-        return auto_background if isinstance(auto_background, int) else None
-    return None if stage.background < 0 else int(stage.background)
 
 
 def _same_volume(made_by: Stage, stage: Stage) -> bool:
@@ -569,7 +563,7 @@ def _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, cente
         return assess(
             v, vg, data, g, poses, basis=model.basis, frame=model.frame, fixed=model.fixed, center=center, weights=w,
             noise_variance=g2, times=times, rcond=model.rcond, backend=backend,
-            background=_background_of(model, auto_background),
+            background=stage_background(model, auto_background),
         )
     except PdvcError as exc:  # a report, never a reason to lose the calibration
         log.warning("assessment of the poses unavailable: %s", exc)

@@ -75,8 +75,8 @@ def profile_offset(red: ViewReduction) -> ViewReduction:
     )
 
 
-def view_offset(red: ViewReduction, noise_variance: float) -> tuple[float, float]:
-    """(RMS of the per-view offsets of the residual about their mean, in noise std; its share of the residual's energy).
+def view_offset(red: ViewReduction, noise_variance: float) -> float:
+    """The RMS of the per-view offsets of the residual about their mean, in noise standard deviations.
 
     The offset of view k is ``m_k = Σ w ρ / Σ w``; what varies from view to view (``m_k - m̄``, ``m̄`` their mean
     weighted by ``Σ w``) is counted, with weight ``Σ w``: an offset that is the same in every view (a mass the
@@ -87,13 +87,12 @@ def view_offset(red: ViewReduction, noise_variance: float) -> tuple[float, float
     e = np.asarray(red.resid_sum, float)
     total_w = float(a.sum())
     if not (total_w > 0 and noise_variance > 0):
-        return 0.0, 0.0
+        return 0.0
     ok = a > 0
     m = np.where(ok, e / np.where(ok, a, 1.0), 0.0)
     mean = float(np.sum(a * m) / total_w)
     energy = float(np.sum(np.where(ok, a * (m - mean) ** 2, 0.0)))
-    rss = float(np.sum(red.rss))
-    return float(np.sqrt(energy / (total_w * noise_variance))), (energy / rss if rss > 0 else 0.0)
+    return float(np.sqrt(energy / (total_w * noise_variance)))
 
 
 def auto_background(offset_sigma: float):

@@ -153,8 +153,9 @@ class CorrelationResult:
         How much the per-view offset of the residual at the poses returned
         varies from view to view (weighted RMS about its mean, in noise
         standard deviations): what the motion did not explain of an air
-        level or a flat field that drifts (0 when a background was fitted). The calibration's ``background = "auto"``
-        reads it (:func:`pdvc.correlation._background.view_offset`).
+        level or a flat field that drifts (0 when a background was
+        fitted). The calibration's ``background = "auto"`` reads it
+        (:func:`pdvc.correlation._background.view_offset`).
     """
 
     geometry: VectorGeometry
@@ -535,7 +536,7 @@ def correlate(
         message=status.message,
         scale_history=((1, chi_hist[0], chi_hist[-1], prob.n_pass),),
         background=prob.background,
-        offset_sigma=view_offset(red, gamma2)[0],
+        offset_sigma=view_offset(red, gamma2),
     )
 
 
