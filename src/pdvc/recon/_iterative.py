@@ -122,10 +122,11 @@ def nonneg_ls(
     coarsen: int = 1,
     n_iter: int = 30,
     support=True,
+    weights=None,
     backend: str = "auto",
     callback: Optional[Callable[[int, float], None]] = None,
 ) -> np.ndarray:
-    """Least squares ``min_c |Π U c − p|²`` with ``c >= 0`` on a support, by FISTA.
+    """Least squares ``min_c |W^½ (Π U c − p)|²`` with ``c >= 0`` on a support, by FISTA.
 
     The unknowns ``c`` are cubic B-spline coefficients on a grid ``coarsen``
     times coarser than ``vol_geom`` (same region); ``U`` samples the spline
@@ -163,6 +164,10 @@ def nonneg_ls(
         True: the voxels where the (Gaussian-smoothed, σ = 1 voxel) start
         volume exceeds 10 % of its 99.5th percentile, dilated by 2 voxels;
         False: the whole grid.
+    weights : (n_rows, n_cols) or (n_views, n_rows, n_cols) array in [0, 1], optional
+        Detector weights ``W`` (e.g. 0 on the rays that leave the volume
+        through a face the sample crosses, :func:`pdvc.calibration.truncation_weights`):
+        rays of weight 0 do not pull the volume. Default: all 1.
     callback : callable, optional
         ``callback(iteration, residual_norm)`` after each iteration
         (residual at the extrapolated point).
@@ -183,6 +188,11 @@ def nonneg_ls(
     b = np.asarray(projections, np.float32)
     if b.shape != (geom.n_views,) + tuple(geom.det_shape):
         raise ShapeError(f"projections must have shape {(geom.n_views,) + tuple(geom.det_shape)}, got {b.shape}")
+    w = None
+    if weights is not None:
+        w = np.asarray(weights, np.float32)
+        if w.shape not in (b.shape, b.shape[1:]) or not np.all((w >= 0) & (w <= 1)):
+            raise ShapeError(f"weights must have shape {b.shape[1:]} or {b.shape} with values in [0, 1], got {w.shape}")
     shape = tuple(n // f for n in vol_geom.shape)
     vg_c = VolumeGeometry(shape, voxel_size=tuple(s * f for s in vol_geom.voxel_size), offset=vol_geom.offset)
     mats = [spline_upsampling_matrix(n, f) for n in shape]
@@ -233,6 +243,8 @@ def nonneg_ls(
     tk = 1.0
     for it in range(int(n_iter)):
         r = A(y) - b
+        if w is not None:  # weights <= 1: the unweighted Lipschitz bound still holds
+            r *= w
         x_new = project(y - step * AT(r))
         if float(np.vdot(y - x_new, x_new - x)) > 0:  # momentum uphill: restart
             tk = 1.0
