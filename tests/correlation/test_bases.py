@@ -185,3 +185,15 @@ def test_dataclass_validation():
     assert b.gram().shape == (2, 2)
     # condition: s_max / s_min, and the Gram's is its square
     assert np.linalg.cond(b.gram()) == pytest.approx(b.condition() ** 2, rel=1e-9)
+
+
+def test_drift_m_spans_one_to_m_cycles_per_turn_with_a_quadratic_drift():
+    a = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    b = make_basis("drift:2", angles=a)
+    assert b.names == ("t^0", "t^1", "t^2", "cos1", "sin1", "cos2", "sin2")
+    t = np.linspace(0, 1, 60)
+    target = np.column_stack([1 + 0 * t, t, t**2, np.cos(a), np.sin(a), np.cos(2 * a), np.sin(2 * a)])
+    coef = np.linalg.lstsq(b.matrix, target, rcond=None)[0]
+    np.testing.assert_allclose(b.matrix @ coef, target, atol=1e-10)
+    assert make_basis("drift:1", angles=a).names == make_basis("drift", angles=a).names
+    np.testing.assert_array_equal(make_basis("drift:1", angles=a).matrix, make_basis("drift", angles=a).matrix)

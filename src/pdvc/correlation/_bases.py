@@ -358,10 +358,10 @@ def custom_basis(matrix, names=None, *, n_views: int | None = None) -> TemporalB
     return TemporalBasis(mat, names, "custom")
 
 
-_SPEC = re.compile(r"^(dirac|constant|drift|poly:(\d+)|fourier:(\d+)(:nodrift)?|spline:(\d+))$")
+_SPEC = re.compile(r"^(dirac|constant|drift(?::(\d+))?|poly:(\d+)|fourier:(\d+)(:nodrift)?|spline:(\d+))$")
 
 #: The names :func:`make_basis` accepts, for messages.
-BASIS_NAMES = "'dirac', 'constant', 'drift', 'poly:D', 'fourier:M', 'fourier:M:nodrift', 'spline:N'"
+BASIS_NAMES = "'dirac', 'constant', 'drift', 'drift:M', 'poly:D', 'fourier:M', 'fourier:M:nodrift', 'spline:N'"
 
 
 def is_basis_name(spec) -> bool:
@@ -369,23 +369,27 @@ def is_basis_name(spec) -> bool:
     return isinstance(spec, str) and _SPEC.match(spec.strip().lower()) is not None
 
 
-def drift_basis(angles, times=None) -> TemporalBasis:
-    """{1, t, t², cos θ, sin θ}: an offset, a drift with constant acceleration and a shifted axis.
+def drift_basis(angles, times=None, order: int = 1) -> TemporalBasis:
+    """{1, t, t², cos kθ, sin kθ (k = 1..order)}: an offset, a drift with constant acceleration and a shifted axis.
 
-    In the lab frame this also spans a once-per-turn precession of the axis.
+    In the lab frame ``order = 1`` also spans a once-per-turn precession of
+    the axis, ``order = 2`` a precession at one and two cycles per turn.
     Falls back to fewer functions when the views cannot determine them (very
-    few views). ``make_basis("drift", ...)`` gives the same.
+    few views). ``make_basis("drift", ...)`` (``"drift:M"``) gives the same.
     """
     th = _samples(angles, "angles")
     n = th.size
     t = _default_times(n) if times is None else _samples(times, "times", n)
-    for degree, order in ((2, 1), (1, 1), (0, 1), (0, 0)):
+    if not isinstance(order, (int, np.integer)) or isinstance(order, bool) or order < 0:
+        raise BasisError(f"order must be an int >= 0, got {order!r}")
+    orders = sorted({int(order), min(int(order), 1), 0}, reverse=True)
+    for degree, m in [(d, o) for o in orders for d in (2, 1, 0)]:
         try:
             cols = [polynomial_basis(t, degree).matrix] if degree > 0 else [np.ones((n, 1))]
             names = [f"t^{d}" for d in range(cols[0].shape[1])]
-            if order:
-                cols.append(fourier_basis(th, t, order, drift=False).matrix[:, 1:])
-                names += ["cos1", "sin1"]
+            if m:
+                cols.append(fourier_basis(th, t, m, drift=False).matrix[:, 1:])
+                names += [f"{f}{k}" for k in range(1, m + 1) for f in ("cos", "sin")]
             return custom_basis(np.column_stack(cols), names=names)
         except BasisError:
             continue
@@ -441,10 +445,10 @@ def make_basis(spec, *, angles, times=None) -> TemporalBasis:
         return dirac_basis(n)
     if word == "constant":
         return polynomial_basis(t, 0)
-    if word == "drift":
-        return drift_basis(th, t)
-    if m.group(2) is not None:
-        return polynomial_basis(t, int(m.group(2)))
+    if word.startswith("drift"):
+        return drift_basis(th, t, 1 if m.group(2) is None else int(m.group(2)))
     if m.group(3) is not None:
-        return fourier_basis(th, t, int(m.group(3)), drift=m.group(4) is None)
-    return bspline_basis(t, int(m.group(5)))
+        return polynomial_basis(t, int(m.group(3)))
+    if m.group(4) is not None:
+        return fourier_basis(th, t, int(m.group(4)), drift=m.group(5) is None)
+    return bspline_basis(t, int(m.group(6)))
