@@ -70,6 +70,8 @@ class _Progress:
             msg = f"resuming at stage {info.get('stage_index', 0) + 1} after {info.get('rounds')} rounds"
         elif event == "skip":
             msg = f"  {info.get('name')}: skipped, {info.get('why', '')}"
+        elif event == "model":
+            msg = f"  motion model ({info.get('elapsed_s', 0.0):.1f} s): {info.get('text', '')}"
         elif event == "assess":
             msg = "uncertainty and motion modes at the geometry kept"
         else:

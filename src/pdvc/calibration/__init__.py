@@ -11,6 +11,8 @@
 * :func:`estimate_axis_offset` finds a large centre-of-rotation offset by
   cross-correlating opposite views, and :func:`offset_poses` turns it into
   per-view poses.
+* :func:`compare_models` scores motion models (:data:`MODELS`) on views
+  they were not fitted to: the default recipe's automatic model choice.
 
 The method and the reasons behind each default: ``docs/method.md``.
 """
@@ -23,6 +25,7 @@ from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._truncation import Truncation, detect_truncation, truncation_weights
 from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages
+from ._select import MIN_MODEL_GAIN, MODELS, ModelChoice, compare_models
 from ._stages import (
     GUARDS,
     RECIPES,
@@ -79,4 +82,8 @@ __all__ = [
     "Truncation",
     "diagnose_residual",
     "ResidualDiagnosis",
+    "compare_models",
+    "ModelChoice",
+    "MODELS",
+    "MIN_MODEL_GAIN",
 ]

@@ -35,6 +35,7 @@ from ..correlation._background import auto_background
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..recon import cgls, fbp, fdk, nonneg_ls, refined_grid, spline_upsample
 from ..status import Status
+from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
 from ._stages import JOLT_BASIS, Stage, StageError
 
 __all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
@@ -53,6 +54,7 @@ class StageOutcome:
     message: str
     rounds: int
     elapsed_s: float
+    until: str = "converged"
 
 
 class PosesResult:
@@ -92,7 +94,10 @@ class DriverResult(PosesResult):
         fitted, -1: none), ``offset_sigma`` (how much the per-view offset of
         the residual varies from view to view, RMS in noise std of the
         full-resolution projections, at the poses measured without a
-        background; 0 when the round fitted one from the start).
+        background; 0 when the round fitted one from the start), ``model``
+        (the motion model's name, :func:`pdvc.calibration._select.model_name`);
+        the first round of the stage that chose the model also holds
+        ``model_choice`` (:meth:`ModelChoice.to_dict`).
     stages : tuple of StageOutcome
     correlation : CorrelationResult or None
         The measurement whose poses were kept (None if no round was kept).
@@ -110,6 +115,9 @@ class DriverResult(PosesResult):
     offset_sigma : float
         The per-view offset (in noise standard deviations) the first round's
         poses left, on which that was decided (nan if none).
+    model_choice : ModelChoice or None
+        The motion model the first stage with ``candidates`` chose and the
+        cross-validated scores it chose on (None: no stage compared models).
     """
 
     poses: Poses
@@ -122,6 +130,7 @@ class DriverResult(PosesResult):
     fit_volume: Optional[tuple] = None
     background: Any = "auto"
     offset_sigma: float = float("nan")
+    model_choice: Optional[ModelChoice] = None
 
 
 def stage_background(stage: Stage, decided):
@@ -159,12 +168,15 @@ def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **k
     return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom, **kw)
 
 
-def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage):
+def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage, weights=None):
     """The volume a stage correlates against, on ``refined_grid(vol_geom, stage.oversample)``.
 
     ``vol_geom`` is the stage's grid. FDK/FBP with ``oversample_by="spline"``
     reconstructs on it and interpolates by cubic B-splines; otherwise the
-    stage's reconstruction runs on the fine grid itself.
+    stage's reconstruction runs on the fine grid itself. ``weights`` (the
+    stage's detector weights) weigh the rays of the ``nonneg_ls`` fit (a ray
+    that leaves the volume through a face the sample crosses does not pull
+    it); FDK, FBP and CGLS take every ray.
     """
     k = stage.oversample
     r = stage.reconstruct
@@ -176,7 +188,7 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
             return spline_upsample(reconstruct(projections, vol_geom, geom), k)
         return reconstruct(projections, fine, geom)
     if r == "nonneg_ls":
-        return nonneg_ls(projections, fine, geom, coarsen=k)
+        return nonneg_ls(projections, fine, geom, coarsen=k, weights=weights)
     return cgls(projections, fine, geom)
 
 
@@ -213,6 +225,29 @@ class _Context:
         self._scaled: dict = {}
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
         self.offset_sigma = float("nan")
+        self.model_choice: Optional[ModelChoice] = None  # stages with candidates: decided at the first one, then kept
+
+    def with_model(self, stage: Stage) -> Stage:
+        """The stage with the motion model chosen (stages with ``candidates``, once a choice was made)."""
+        return with_model(stage, self.model_choice)
+
+    def stage_volume(self, stage: Stage, poses: Poses):
+        """The stage's correlation volume at ``poses`` (what its first round makes)."""
+        p, g, vg, w, _ = self.at_scale(stage.scale)
+        return correlation_volume(p, vg, g.apply(poses), stage, weights=w)
+
+    def choose_model(self, stage: Stage, poses: Poses, volume) -> ModelChoice:
+        """Compare the stage's model with its candidates on views they were not fitted to (``docs/method.md`` §5.12)."""
+        p, g, vg, w, gamma2 = self.at_scale(stage.scale)
+        own = model_name(stage)
+        self.model_choice = compare_models(
+            volume, refined_grid(vg, stage.oversample), p, g, poses,
+            dict(basis=stage.basis, frame=stage.frame, fixed=stage.fixed), {c: model_fields(c) for c in stage.candidates},
+            noise_variance=gamma2, weights=w, angles=self.angles, times=self.times, center=self.center,
+            background=stage_background(stage, self.auto_background), backend=self.backend, max_iter=stage.max_iter,
+            own_name=own,
+        )
+        return self.model_choice
 
     @staticmethod
     def full_resolution_sigma(offset_sigma: float, scale: int) -> float:
@@ -306,30 +341,46 @@ def run_stages(
             ctx.offset_sigma = float(h["offset_sigma"])
             ctx.auto_background = b if b >= 0 else auto_background(ctx.offset_sigma)
             break
+    for h in history:  # ... and the model its first stage with candidates chose
+        if isinstance(h.get("model_choice"), dict):
+            ctx.model_choice = ModelChoice(**h["model_choice"])
     outcomes: list = []
     kept = None
     guard_volume = fit_volume = None
     i0, r0 = int(start[0]), int(start[1])
     for i in range(i0, len(stages)):
-        stage = stages[i]
-        t0 = time.perf_counter()
+        stage, first, primed = stages[i], (r0 if i == i0 else 0), None
+        t0 = time.perf_counter()  # the stage's time holds its model choice
+        if stage.candidates and ctx.model_choice is None:
+            # the first stage with candidates chooses its model, from the poses it starts from: does a candidate predict
+            # views it was not fitted to better than the stage's own model?
+            tc = time.perf_counter()
+            primed = (poses, ctx.stage_volume(stage, poses))
+            choice = ctx.choose_model(stage, poses, primed[1])
+            if progress is not None:
+                progress(dict(event="model", text=choice.text(), elapsed_s=time.perf_counter() - tc, **choice.to_dict()))
+        chosen = ctx.with_model(stage)
+        if primed is not None and any(getattr(chosen, k) != getattr(stage, k) for k in ("reconstruct", "oversample", "oversample_by")):
+            primed = None  # the chosen model reconstructs its own way
+        stage = chosen
         _, g_s, vg_s, _, _ = ctx.at_scale(stage.scale)
         if progress is not None:
             progress(dict(event="stage", index=i, n_stages=len(stages), name=stage.name, scale=stage.scale,
                           det_shape=g_s.det_shape, volume=vg_s.shape, rounds=stage.rounds))
         # does it start from poses an earlier stage measured and kept (a warm-up's, a coarser scale's)?
         refines = any(o.status.success and o.rounds > 0 for o in outcomes)
-        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept, refines=refines)
-        poses, status, res, gv = run.run(r0 if i == i0 else 0)
+        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept, refines=refines, volume=primed)
+        poses, status, res, gv = run.run(first)
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
         fit_volume = (poses, stage, run.volume_at_poses) if run.volume_at_poses is not None else fit_volume
-        outcomes.append(StageOutcome(stage.name, stage.scale, status, status.message, run.n_rounds, time.perf_counter() - t0))
+        outcomes.append(StageOutcome(stage.name, stage.scale, status, status.message, run.n_rounds, time.perf_counter() - t0,
+                                     stage.until))
         if checkpoint is not None:
             checkpoint(dict(poses=poses, history=[dict(h) for h in history], stage_index=i + 1, rounds_done=0))
         log.info("stage %d (%s, scale %d): %s after %d round(s)", i, stage.name, stage.scale, status.message, run.n_rounds)
     # the run's status is that of the last stage that had to converge (warm-ups and refinements run their rounds)
-    musts = [o for o, s in zip(outcomes, stages[i0:]) if s.until == "converged"]
+    musts = [o for o in outcomes if o.until == "converged"]
     last = musts[-1] if musts else outcomes[-1] if outcomes else StageOutcome(
         stages[-1].name, stages[-1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0
     )
@@ -337,7 +388,7 @@ def run_stages(
         poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
         correlation=kept, guard_volume=guard_volume,
         fit_volume=fit_volume if fit_volume is not None and fit_volume[0] is poses else None,
-        background=ctx.auto_background, offset_sigma=ctx.offset_sigma,
+        background=ctx.auto_background, offset_sigma=ctx.offset_sigma, model_choice=ctx.model_choice,
     )
 
 
@@ -345,7 +396,7 @@ class _StageRun:
     """The rounds of one stage and its stopping rules (``docs/method.md``, "Stopping")."""
 
     def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress, previous=None,
-                 refines=False):
+                 refines=False, volume=None):
         self.ctx, self.stage, self.index = ctx, stage, index
         self.refines = refines  # the poses it starts from were measured and kept by an earlier stage
         self.previous = previous  # the correlation kept by the stages before (a jolt stage reads its per-view fit)
@@ -360,7 +411,7 @@ class _StageRun:
         self.ent_range = None
         self.guard_volumes: list = []  # the entropy guard's last two volumes: a rollback keeps the one before
         self.kept = None  # the correlation whose poses are self.poses
-        self.volume = None  # (poses, correlation volume) of the current round
+        self.volume = volume  # (poses, correlation volume) of the current round (given: already made at ``poses``)
         self.volume_at_poses = None  # the correlation volume made at the poses the stage returns, if one was
 
     def run(self, first_round: int):
@@ -452,9 +503,9 @@ class _StageRun:
         st, ctx = self.stage, self.ctx
         p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
         vg_c = refined_grid(vg, st.oversample)
-        if not again:
+        if not again and not (self.volume is not None and self.volume[0] is self.poses):
             self.volume = None  # at most two volumes alive: the best round's and this one
-            self.volume = (self.poses, correlation_volume(p, vg, g.apply(self.poses), st))
+            self.volume = (self.poses, correlation_volume(p, vg, g.apply(self.poses), st, weights=w))
         vol = self.volume[1]
         # a fresh reconstruction that already fits worse than the best ends the stage: measure nothing more
         limit = self.best[0] * (1 + st.diverge_tol) if "consistency" in st.guards and self.best is not None else None
@@ -475,7 +526,11 @@ class _StageRun:
             entropy=entropy, increment_px=inc, increment_max_px=inc_max, n_iter=int(res.n_iter) + self.extra_passes,
             engine_status=Status(res.status).name.lower(), elapsed_s=time.perf_counter() - self.t_round,
             background=-1 if res.background is None else int(res.background), offset_sigma=self.offset_sigma,
+            model=model_name(st),
         )
+        choice = self.ctx.model_choice
+        if st.candidates and choice is not None and not any("model_choice" in h for h in self.history):
+            entry["model_choice"] = choice.to_dict()  # saved with the stage's first round: a resumed run keeps the choice
         self.history.append(entry)
         self.n_rounds += 1
         log.info("stage %s round %d: chi %.5g -> %.5g, increment %.3g px", st.name, r, chi_before, entry["chi_after"], inc)

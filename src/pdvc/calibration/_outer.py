@@ -11,7 +11,7 @@ the outputs. The method and the reasons for each default: ``docs/method.md``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -62,6 +62,8 @@ class OuterResult(PosesResult):
         The grid given and the (oversampled) grid of the last correlation.
     status : Status
     message : str
+    model_choice : ModelChoice or None
+        The motion model the stages with candidates chose (:class:`pdvc.calibration.DriverResult`).
     """
 
     poses: Poses
@@ -75,6 +77,7 @@ class OuterResult(PosesResult):
     corr_vol_geom: VolumeGeometry
     status: Status
     message: str
+    model_choice: Optional[Any] = None
 
     @property
     def n_outer(self) -> int:
@@ -181,6 +184,7 @@ def self_calibrate(
         poses=drv.poses, geometry=geometry, gauge=gauge_text(geom.kind, fix_scale), result=drv.correlation,
         history=drv.history, stages=drv.stages, volume=np.asarray(volume, np.float32), vol_geom=vol_geom,
         corr_vol_geom=refined_grid(vol_geom, stages[-1].oversample), status=drv.status, message=drv.message,
+        model_choice=drv.model_choice,
     )
 
 

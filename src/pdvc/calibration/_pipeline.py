@@ -33,6 +33,7 @@ from ..status import Status
 from ._diagnose import diagnose_residual
 from ._driver import PosesResult, correlation_volume, data_at_scale, reconstruct, refined_grid, run_stages, stage_background
 from ._outer import gauge_text
+from ._select import with_model
 from ._stages import Stage, StageError, recipe_stages
 
 log = logging.getLogger("pdvc.calibration")
@@ -312,6 +313,7 @@ def calibrate(
         recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
         background=_background_text(drv), zingers=found_zingers.describe() if found_zingers is not None else "not checked",
+        model=drv.model_choice.text() if drv.model_choice is not None else "as given (no candidates compared)",
     )
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])
@@ -538,7 +540,8 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         log.warning("motion summary unavailable: %s", exc)
     emit(dict(event="assess"))
     t0 = time.perf_counter()
-    assessment = _assess(p, geom, vol_geom, vol, poses, stages, gamma2, weights, times, center, backend, scaled, drv.background)
+    ran = [with_model(s, drv.model_choice) for s in stages]  # the model a stage with candidates ran
+    assessment = _assess(p, geom, vol_geom, vol, poses, ran, gamma2, weights, times, center, backend, scaled, drv.background)
     timings["assess"] = time.perf_counter() - t0
     return CalibrationResult(
         geometry=calibrated, nominal=geom, poses=poses, assessment=assessment, history=drv.history, stages=tuple(stages),

@@ -21,6 +21,7 @@ import numpy as np
 from ..correlation import BASIS_NAMES, TemporalBasis, is_basis_name
 from ..errors import PdvcError
 from ..projectors import POSE_PARAMETERS
+from ._select import MODELS
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -123,6 +124,15 @@ class Stage:
         the per-view offset of the residual (a plane per view when it is
         well above the noise, none otherwise; ``docs/method.md`` §5.10); the
         later stages keep that choice.
+    candidates : tuple of str
+        Named motion models (:data:`pdvc.calibration.MODELS`: ``"axis"``,
+        ``"precession"``) compared with the stage's own once its rounds
+        end, on views they were not fitted to (:func:`compare_models`); a
+        candidate that predicts them better by more than ``MIN_MODEL_GAIN``
+        replaces the model, which then runs its own rounds from the poses
+        reached, and every later stage that lists candidates takes it. Once
+        per run, at the first such stage. Empty (default for a stage): no
+        choice.
     max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
         The engine's options (:func:`pdvc.correlate`).
     """
@@ -151,6 +161,7 @@ class Stage:
     noise_floor: float = 1.05
     rcond: float = 1e-6
     background: Any = "auto"
+    candidates: tuple = ()
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -197,6 +208,10 @@ class Stage:
             if isinstance(self.background, bool) or self.background not in (-1, 0, 1, 2):
                 raise StageError(f"{w}background must be 'auto', -1 (none), 0, 1 or 2 (a polynomial degree), got {self.background!r}")
             set_("background", int(self.background))
+        cands = (self.candidates,) if isinstance(self.candidates, str) else tuple(self.candidates)
+        if any(c not in MODELS for c in cands) or len(set(cands)) != len(cands):
+            raise StageError(f"{w}candidates must be distinct names among {tuple(MODELS)}, got {list(cands)}")
+        set_("candidates", cands)
         if not isinstance(self.accelerate, (bool, np.bool_)):
             raise StageError(f"{w}accelerate must be true or false, got {self.accelerate!r}")
         set_("accelerate", bool(self.accelerate))
@@ -217,6 +232,7 @@ class Stage:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["fixed"] = list(self.fixed)
         d["guards"] = list(self.guards)
+        d["candidates"] = list(self.candidates)
         d["stall_ratio"] = 0.0 if self.stall_ratio is None else float(self.stall_ratio)
         return d
 
@@ -284,6 +300,9 @@ def auto_scales(det_shape, vol_shape=None, oversample: int = 2) -> tuple:
 
 # diverge_tol of the model stage at the scales after the first (the finest scales refine)
 FINER_SCALE_DIVERGE_TOL = 0.0
+
+# the models the default recipe compares with its own (docs/method.md §5.12)
+DEFAULT_CANDIDATES = ("precession",)
 
 # the model stage of each recipe, before the user's overrides
 _RECIPE_MODEL = {
@@ -360,6 +379,8 @@ def recipe_stages(
     if unknown:
         raise StageError(f"unknown model option(s) {unknown}; a stage takes {sorted(fields)}")
     spec = dict(_RECIPE_MODEL[recipe])
+    if recipe == "default" and not any(model.get(k) is not None for k in ("basis", "frame", "fixed")):
+        spec["candidates"] = DEFAULT_CANDIDATES  # the model is chosen from the data unless the user chose it
     spec.update({k: v for k, v in model.items() if v is not None})
     base = Stage(name="model", rounds=1, **spec)
     if sched is None:
@@ -392,7 +413,7 @@ def jolt_stage(model: Stage, rounds: int = 5) -> Stage:
     """
     return model.replace(
         name="jolts", basis=JOLT_BASIS, frame="lab", fixed=("rx", "ry", "rz", "ty"), method="full", rounds=rounds,
-        until="rounds", stall_ratio=None, guards=("consistency",),
+        until="rounds", stall_ratio=None, guards=("consistency",), candidates=(),
     )
 
 
@@ -407,9 +428,10 @@ def warmup_stage(model: Stage, *, scale: int, rounds: int = 1, basis: str = "dri
         fixed = _ROTATIONS + tuple(x for x in model.fixed if x not in _ROTATIONS)
         return model.replace(
             name="warmup", fixed=fixed, method="full", scale=scale, rounds=rounds, until="rounds", guards=(), stall_ratio=None,
+            candidates=(),
         )
     fixed = _ROTATIONS + (tuple(x for x in model.fixed if x not in _ROTATIONS) if model.frame == "lab" else ())
     return model.replace(
         name="warmup", basis="drift", frame="lab", fixed=fixed, method="full", scale=scale, rounds=rounds,
-        until="rounds", guards=(), stall_ratio=None,
+        until="rounds", guards=(), stall_ratio=None, candidates=(),
     )

@@ -112,6 +112,8 @@ that type needs) are required; everything else has the default shown.
     # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper)
     # background = "auto"       # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane,
                                 # 2 quadratic; "auto": a plane when the residual's per-view offset is well above the noise
+    # candidates = ["precession"]  # default recipe: motion models compared with its own ("axis") on views they were
+                                # not fitted to, before the model stage; [] = none (also when basis/frame/fixed are set)
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
     warmup = 1                  # translation-only rounds before a model with free rotations, at the first scale
     # ... or the whole stage list, one table per stage (then no recipe parameter above):
@@ -119,7 +121,8 @@ that type needs) are required; everything else has the default shown.
     # name = "warmup"           # every field of pdvc.calibration.Stage: name, basis, frame, fixed, method,
     # basis = "drift"           # reconstruct, scale, oversample, oversample_by, rounds, tol_px, until ("converged" |
     # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
-    # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond, background
+    # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond, background,
+                                # candidates
     # until = "rounds"
     # rounds = 1
     # run settings
@@ -376,6 +379,7 @@ class CalibrationConfig:
     oversample: Optional[int] = None
     oversample_by: Optional[str] = None
     background: Union[int, str, None] = None
+    candidates: Optional[tuple[str, ...]] = None
     center: Optional[tuple[float, float, float]] = None
     fix_scale: bool = True
     backend: str = "auto"
@@ -782,6 +786,7 @@ _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
 _RECIPE_KEYS = (
     "basis", "method", "frame", "fixed", "reconstruct", "guards", "max_outer", "tol_px", "max_iter", "max_modes",
     "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample", "oversample_by", "accelerate", "background",
+    "candidates",
 )
 
 
@@ -796,7 +801,7 @@ def _names(value, where: str, allowed, *, distinct=True) -> tuple:
 
 
 def _parse_calibration(t: _Table) -> CalibrationConfig:
-    from ..calibration import GUARDS, OVERSAMPLE_BY, RECIPES, RECONSTRUCTIONS, StageError, stages_from_dicts
+    from ..calibration import GUARDS, MODELS, OVERSAMPLE_BY, RECIPES, RECONSTRUCTIONS, StageError, stages_from_dicts
 
     w = "calibration."
     d = CalibrationConfig()
@@ -819,6 +824,9 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
     guards = t.pop("guards")
     if guards is not None:
         kw["guards"] = _names(guards, w + "guards", GUARDS)
+    candidates = t.pop("candidates")
+    if candidates is not None:
+        kw["candidates"] = _names(candidates, w + "candidates", tuple(MODELS))
     for key, minimum in (("max_outer", 1), ("max_iter", 1), ("max_modes", 1), ("pgd_passes", 1), ("oversample", 1)):
         val = t.pop(key)
         if val is not None:

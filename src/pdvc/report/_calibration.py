@@ -98,6 +98,8 @@ def build_report(out, result, *, projections, angles, params_lab):
     if getattr(result, "truncation", None) is not None:
         summary["sample and volume"] = result.truncation.describe()
     options = getattr(result, "options", None) or {}
+    if "model" in options:
+        summary["motion model"] = options["model"]
     if "background" in options:
         summary["background per view"] = options["background"]
     if "zingers" in options:

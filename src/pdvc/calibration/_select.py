@@ -1,0 +1,203 @@
+"""Automatic choice of the motion model: candidates scored on views they were not fitted to.
+
+After the first model stage has converged, every candidate model (the
+stage's own and those it names in ``Stage.candidates``) measures an
+increment from the stage's poses on one half of the views and predicts the
+other half; the data consistency of those predictions (χ² of the views left
+out, against the same correlation volume) scores it. Both halves take each
+role (two-fold cross-validation by interleaved blocks of views). A candidate
+replaces the stage's own model only when it lowers that score by more than
+``MIN_MODEL_GAIN``: a richer model has to predict views it never saw better,
+not merely fit more (``docs/method.md`` §5.12).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from ..correlation import correlate, make_basis
+from ..correlation._engine import _problem
+from ..correlation._frames import lab_to_sample_map, params_to_lab, params_to_sample
+from ..geometry import Poses, sample_points
+
+log = logging.getLogger("pdvc.calibration")
+
+__all__ = ["MODELS", "MIN_MODEL_GAIN", "ModelChoice", "compare_models", "model_fields", "model_name", "with_model"]
+
+#: Named motion models a stage can list as candidates: (basis, frame, fixed).
+MODELS = {
+    # a tilted, offset axis and a slow drift (the default recipe's model)
+    "axis": dict(basis="fourier:1", frame="sample", fixed=("rz",)),
+    # a precessing axis (one and two cycles per turn in the lab) and a drift with acceleration; the precession
+    # recipe's volume (consistent on non-planar orbits) and entropy guard (the near-gauge rotation modes)
+    "precession": dict(basis="drift:2", frame="lab", fixed=("rz",), reconstruct="nonneg_ls", guards=("consistency", "entropy")),
+}
+#: A candidate must lower the cross-validated χ² of the stage's own model by more than this fraction.
+MIN_MODEL_GAIN = 0.007
+# interleaved blocks of views: each half holds every other block
+_BLOCKS = 16
+
+
+def model_fields(name: str) -> dict:
+    """The stage fields of a named model (basis, frame, fixed; its reconstruction and guards)."""
+    return dict(MODELS[name])
+
+
+def with_model(stage, choice: Optional["ModelChoice"]):
+    """The stage with the motion model ``choice`` made, if it lists candidates and a candidate won; else itself."""
+    if not stage.candidates or choice is None or not choice.changed:
+        return stage
+    return stage.replace(name=f"{stage.name}:{choice.winner}", **model_fields(choice.winner))
+
+
+def model_name(stage) -> str:
+    """The name of the stage's model among :data:`MODELS`, or ``"basis (frame)"``."""
+    for name, f in MODELS.items():
+        if isinstance(stage.basis, str) and all(getattr(stage, k) == v for k, v in f.items()):
+            return name
+    b = stage.basis if isinstance(stage.basis, str) else "custom"
+    return f"{b} ({stage.frame} frame)"
+
+
+@dataclass(frozen=True)
+class ModelChoice:
+    """What :func:`compare_models` measured.
+
+    Attributes
+    ----------
+    winner : str
+        The model kept (the stage's own unless a candidate won).
+    own : str
+        The stage's own model.
+    scores : dict
+        Cross-validated χ² of each model (mean of the views left out, noise
+        variance 1), in the order compared.
+    gain : float
+        Relative decrease of the winner's score against the own model's (0 if it kept its own).
+    n_views : int
+    n_passes : int
+        Jacobian passes spent (fits and scores).
+    shifts_px : dict
+        RMS detector displacement (pixels of the data compared) of the
+        sample points between each model's predictions and the stage's
+        poses, over the views left out (gauge-free).
+    min_gain : float
+        The gain a candidate had to exceed.
+    """
+
+    winner: str
+    own: str
+    scores: dict = field(default_factory=dict)
+    gain: float = 0.0
+    n_views: int = 0
+    n_passes: int = 0
+    shifts_px: dict = field(default_factory=dict)
+    min_gain: float = MIN_MODEL_GAIN
+
+    @property
+    def changed(self) -> bool:
+        return self.winner != self.own
+
+    def text(self) -> str:
+        if not self.scores:
+            return f"{self.winner} (not compared)"
+        parts = ", ".join(f"{k} {v:.4g}" for k, v in self.scores.items())
+        if self.changed:
+            return f"{self.winner}: predicts the views it was not fitted to {100 * self.gain:.2g} % better than {self.own} " \
+                   f"(cross-validated chi^2: {parts})"
+        return f"{self.own} kept: no candidate predicts the views it was not fitted to more than {100 * self.min_gain:.2g} % better " \
+               f"(cross-validated chi^2: {parts})"
+
+    def to_dict(self) -> dict:
+        return dict(winner=self.winner, own=self.own, scores=dict(self.scores), gain=self.gain, n_views=self.n_views,
+                    n_passes=self.n_passes, shifts_px=dict(self.shifts_px), min_gain=self.min_gain)
+
+
+def halves(n_views: int, blocks: int = _BLOCKS) -> tuple:
+    """Two complementary index arrays: interleaved blocks of consecutive views."""
+    k = np.arange(n_views)
+    a = ((k * blocks) // n_views) % 2 == 0
+    return np.nonzero(a)[0], np.nonzero(~a)[0]
+
+
+def _subset(x, idx):
+    return x[idx] if x is not None and np.ndim(x) == 3 else x
+
+
+def compare_models(
+    volume, vol_geom, projections, geom, poses: Poses, own: dict, candidates: dict, *, noise_variance: float,
+    weights=None, angles, times=None, center, background: Optional[int] = None, backend: str = "auto",
+    max_iter: int = 6, min_gain: float = MIN_MODEL_GAIN, own_name: str = "own",
+) -> ModelChoice:
+    """Score the models on views they were not fitted to; return the winner.
+
+    Parameters
+    ----------
+    volume, vol_geom
+        The correlation volume made at ``poses`` and its grid.
+    projections, geom
+        Data and geometry of the stage's scale; ``poses`` is relative to ``geom``.
+    own, candidates
+        ``dict(basis=, frame=, fixed=)`` of the stage's model, and named candidates.
+    """
+    n = geom.n_views
+    angles = np.asarray(angles, float)
+    t_all = None if times is None else np.asarray(times, float)
+    models = {own_name: own}
+    models.update({k: v for k, v in candidates.items() if k != own_name})
+    folds = halves(n)
+    start = poses.gauge_fixed(geom, center=np.asarray(center, float))
+    rss = {k: 0.0 for k in models}
+    wsum = {k: 0.0 for k in models}
+    moved = {k: 0.0 for k in models}  # sum of squared detector displacements of the predictions from the stage's poses
+    pts = sample_points(vol_geom, 3, fraction=0.8)
+    passes = 0
+    c = np.asarray(center, float)
+    for fit, test in (folds, folds[::-1]):
+        g_fit, g_test = geom[fit], geom[test]
+        p0_fit, p0_test = poses[fit], poses[test]
+        for name, m in models.items():
+            full = make_basis(m["basis"], angles=angles, times=t_all)
+            S = full.matrix
+            res = correlate(
+                volume, vol_geom, projections[fit], g_fit, basis=S[fit], frame=m["frame"], fixed=m["fixed"], center=c,
+                weights=_subset(weights, fit), noise_variance=noise_variance, angles=angles[fit],
+                times=None if t_all is None else t_all[fit], initial_rotvecs=p0_fit.rotvecs,
+                initial_translations=p0_fit.translations, max_iter=max_iter, backend=backend, background=background,
+            )
+            passes += int(res.n_iter)
+            # the increment the fit added to the stage's poses, on the basis; then evaluated at the views left out
+            d = (p0_fit.inverse() @ res.poses).to_params(c)
+            if m["frame"] == "lab":
+                d = params_to_lab(d, lab_to_sample_map(g_fit))
+            coef = np.linalg.lstsq(S[fit], d, rcond=None)[0]
+            d_test = S[test] @ coef
+            if m["frame"] == "lab":
+                d_test = params_to_sample(d_test, lab_to_sample_map(g_test))
+            pred = p0_test @ Poses.from_params(d_test, c)
+            # how far the model moves the sample from the stage's poses, gauge-free (a motion of the whole scan is not one)
+            rv_all, t_all_ = np.empty((n, 3)), np.empty((n, 3))
+            rv_all[fit], t_all_[fit] = res.poses.rotvecs, res.poses.translations
+            rv_all[test], t_all_[test] = pred.rotvecs, pred.translations
+            moved_to = Poses(rv_all, t_all_).gauge_fixed(geom, center=c)
+            shift = geom[test].apply(moved_to[test]).project_points(pts) - geom[test].apply(start[test]).project_points(pts)
+            moved[name] += float(np.sum(shift**2)) / pts.shape[0]
+            prob, _ = _problem(volume, vol_geom, projections[test], g_test, "constant", "sample", c, (), _subset(weights, test),
+                               noise_variance, angles[test], None, backend, background)
+            red = prob.reduce(pred.rotvecs, pred.translations)
+            passes += 1
+            rss[name] += float(red.rss.sum())
+            wsum[name] += float(red.weight_sum.sum())
+    scores = {k: rss[k] / (max(wsum[k], 1e-300) * noise_variance) for k in models}
+    shifts = {k: float(np.sqrt(moved[k] / n)) for k in models}
+    best = min(scores, key=scores.get)
+    gain = 1.0 - scores[best] / scores[own_name] if scores[own_name] > 0 else 0.0
+    winner = best if best != own_name and gain > min_gain else own_name
+    choice = ModelChoice(winner=winner, own=own_name, scores=scores, gain=gain if winner != own_name else 0.0, n_views=n,
+                         n_passes=passes, shifts_px=shifts, min_gain=float(min_gain))
+    log.info("motion model: %s", choice.text())
+    return choice

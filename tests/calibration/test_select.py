@@ -1,0 +1,154 @@
+"""Automatic choice of the motion model: candidates scored on the views they were not fitted to."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pdvc
+from pdvc.calibration import MODELS, ModelChoice, Stage, StageError, compare_models, recipe_stages, run_stages
+from pdvc.calibration._select import halves, model_name, with_model
+from pdvc.correlation import estimate_noise_variance
+from pdvc.geometry import Poses, fix_gauge, reprojection_error
+from tests.correlation.cases import make_case
+
+_CASES: dict = {}
+
+
+def _case(name):
+    if name not in _CASES:
+        _CASES[name] = make_case(name, n=24, n_views=48)
+    return _CASES[name]
+
+
+def test_halves_are_complementary_interleaved_blocks():
+    a, b = halves(48)
+    assert np.array_equal(np.sort(np.concatenate([a, b])), np.arange(48))
+    assert a.size == b.size == 24 and 0 in a
+    assert np.count_nonzero(np.diff(a) > 1) == 7  # 8 blocks of 3 consecutive views in each half
+    a, b = halves(91)
+    assert abs(a.size - b.size) <= 6 and not set(a) & set(b)
+
+
+@pytest.mark.parametrize("name, wins", [("precession_drift", "precession"), ("tilted_axis", "axis"), ("offset", "axis")])
+def test_compare_models_picks_the_model_that_holds_the_motion(name, wins):
+    # The sharp object (a voxelised analytic phantom: the data come from the analytic projector) and
+    # the nominal poses. A 0.3 deg once-per-turn precession with a drift that accelerates is not in
+    # the sample-frame {1, t, cos, sin} model: the lab-frame drift:2 model predicts the half of the
+    # views it did not see 11 % better (measured); a fixed tilted or offset axis is in both, and the
+    # richer model predicts no better (measured -0.2 and -0.6 %): the axis model is kept.
+    c = _case(name)
+    g = c.scan.geometry
+    choice = compare_models(
+        c.truth, c.vol_geom, c.scan.projections, g, Poses.identity(g.n_views), dict(MODELS["axis"]),
+        {"precession": dict(MODELS["precession"])}, noise_variance=estimate_noise_variance(c.scan.projections),
+        angles=np.linspace(0, 2 * np.pi, g.n_views, endpoint=False), center=c.vol_geom.offset, own_name="axis",
+    )
+    assert choice.winner == wins
+    assert set(choice.scores) == {"axis", "precession"}
+    gain = 1 - choice.scores["precession"] / choice.scores["axis"]
+    if wins == "precession":
+        assert gain > 0.05 and choice.gain == pytest.approx(gain) and choice.changed
+        assert "precession" in choice.text() and "better than axis" in choice.text()
+    else:
+        assert gain < 0.001 and choice.gain == 0.0 and not choice.changed
+        assert choice.text().startswith("axis kept")
+    assert choice.n_passes > 4 and ModelChoice(**choice.to_dict()) == choice
+    # how far each model moves the sample from the (nominal) poses: the injected motion, gauge-free
+    truth = np.sqrt(np.mean(np.sum((g.apply_poses(*fix_gauge(c.scan.rotvecs, c.scan.translations, g, center=c.vol_geom.offset))
+                                    .project_points(c.points) - g.project_points(c.points)) ** 2, axis=-1)))
+    assert choice.shifts_px[wins] == pytest.approx(truth, rel=0.35)
+
+
+def test_candidates_are_a_stage_field_the_default_recipe_sets_unless_the_model_is_given():
+    st = recipe_stages("default", (50, 60), scales=(2, 1))
+    assert [s.candidates for s in st] == [(), ("precession",), ("precession",), ()]  # warm-up, two scales, jolts
+    assert all(s.candidates == () for s in recipe_stages("default", (50, 60), basis="fourier:2"))
+    assert all(s.candidates == () for s in recipe_stages("default", (50, 60), frame="lab"))
+    assert all(s.candidates == () for s in recipe_stages("default", (50, 60), candidates=()))
+    assert all(s.candidates == () for r in ("precession", "jolts", "axis") for s in recipe_stages(r, (50, 60)))
+    assert Stage(candidates="precession").candidates == ("precession",)
+    assert Stage.from_dict(Stage(candidates=("precession",)).to_dict()).candidates == ("precession",)
+    for bad in (("wobble",), ("precession", "precession")):
+        with pytest.raises(StageError, match="candidates"):
+            Stage(candidates=bad)
+    model = st[1]
+    assert model_name(model) == "axis" and with_model(model, None) is model
+    won = ModelChoice(winner="precession", own="axis", scores={"axis": 1.0, "precession": 0.9}, gain=0.1)
+    chosen = with_model(model, won)
+    assert (chosen.basis, chosen.frame, chosen.reconstruct, chosen.name) == ("drift:2", "lab", "nonneg_ls", "model:precession")
+    assert model_name(chosen) == "precession" and chosen.scale == model.scale
+    assert with_model(st[0], won) is st[0]  # a stage without candidates keeps its model
+    assert with_model(model, ModelChoice(winner="axis", own="axis")) is model
+
+
+def _run(case, stages, **kw):
+    g = case.scan.geometry
+    return run_stages(case.scan.projections, g, case.vol_geom, stages, noise_variance=estimate_noise_variance(case.scan.projections),
+                      **kw)
+
+
+def _error(case, poses):
+    g = case.scan.geometry
+    truth = g.apply_poses(*fix_gauge(case.scan.rotvecs, case.scan.translations, g, center=case.vol_geom.offset))
+    return reprojection_error(g.apply(poses), truth, case.points).rms
+
+
+def _case48(name):
+    key = name + "48"
+    if key not in _CASES:
+        _CASES[key] = make_case(name, n=48, n_views=90)
+    return _CASES[key]
+
+
+def test_the_driver_chooses_once_before_the_model_runs_the_winner_and_keeps_the_choice_on_resume():
+    # The README's precession case (48^3, 90 views, 0.3 deg once-per-turn precession and a drift that
+    # accelerates): from the warm-up's poses the precession model predicts the views it did not see
+    # 0.89 % better (measured), above MIN_MODEL_GAIN; it then runs the model stage. Measured: 0.030 px
+    # against 0.09 px for the axis model (nominal 1.02 px).
+    c = _case48("precession_drift")
+    stages = recipe_stages("default", c.scan.geometry.det_shape, scales=(1,), max_outer=2, jolts=False)
+    saved = []
+    out = _run(c, stages, checkpoint=lambda d: saved.append(d))
+    ch = out.model_choice
+    assert ch is not None and ch.winner == "precession" and ch.gain > 0.007
+    models = [h["model"] for h in out.history]
+    assert models[0] == "drift (lab frame)" and set(models[1:]) == {"precession"} and len(models) >= 2
+    assert [o.name for o in out.stages] == ["warmup", "model:precession"]
+    assert [("model_choice" in h) for h in out.history] == [False, True] + [False] * (len(models) - 2)
+    assert _error(c, out.poses) < 0.05
+    # a run resumed after the model stage's first round reads the choice back: no comparison again
+    first = next(d for d in saved if d["stage_index"] == 1 and d["rounds_done"] == 1)
+    again = _run(c, stages, poses=first["poses"], start=(1, 1), history=first["history"])
+    assert again.model_choice == ch
+    assert [o.name for o in again.stages] == ["model:precession"]
+    assert [h["model"] for h in again.history] == models
+
+
+def test_the_driver_keeps_its_own_model_on_an_offset_axis():
+    c = _case48("offset")  # measured: the precession model predicts 0.28 % better, below MIN_MODEL_GAIN
+    stages = recipe_stages("default", c.scan.geometry.det_shape, scales=(1,), max_outer=3, jolts=False)
+    out = _run(c, stages)
+    assert out.model_choice.winner == "axis" and not out.model_choice.changed and out.model_choice.gain == 0.0
+    assert {h["model"] for h in out.history[1:]} == {"axis"} and [o.name for o in out.stages] == ["warmup", "model"]
+    assert _error(c, out.poses) < 0.02
+
+
+def test_calibrate_reports_the_model_it_chose():
+    c = _case("offset")
+    res = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=2)
+    assert "cross-validated chi^2: axis" in res.options["model"]
+    given = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, max_outer=2, basis="fourier:1")
+    assert given.options["model"].startswith("as given")
+
+
+def test_candidates_are_a_config_key(tmp_path):
+    from pdvc.io import ConfigError, load_config
+
+    raw = lambda **cal: {"data": {"path": "p.npy"}, "geometry": {"type": "parallel", "pixel": 1.0}, "calibration": cal}  # noqa: E731
+    assert load_config(raw(candidates=[]), base_dir=tmp_path).calibration.recipe_parameters() == {"candidates": ()}
+    cfg = load_config(raw(candidates=["precession"]), base_dir=tmp_path)
+    assert cfg.calibration.recipe_parameters() == {"candidates": ("precession",)}
+    for bad in (["wobble"], "precession", ["precession", "precession"]):
+        with pytest.raises(ConfigError, match=r"calibration\.candidates"):
+            load_config(raw(candidates=bad), base_dir=tmp_path)
