@@ -18,8 +18,11 @@ The data are made by the analytic ellipsoid projector (no inverse crime):
 ``cast_iron_phantom`` (radius 0.36n, height 0.8n, 3n nodules), Poisson noise
 i0 = 2e4, motion = ``tilted_axis_poses`` (0.5°, offset 0.04n) followed by
 ``drift_poses`` (velocity (0.02n, 0, 0.015n) over the scan), as in
-``pdvc demo`` without its precession.  The calibration starts from the
-nominal geometry with default options.
+``pdvc demo`` without its precession; ``--precession DEG`` adds a
+once-per-turn precession of that amplitude (``precession_poses``), which the
+default recipe's model choice may answer with the precession model
+(``docs/method.md`` §5.12).  The calibration starts from the nominal
+geometry with default options.
 
 Each size runs in two fresh subprocesses pinned to ``--threads`` CPUs: one
 simulates the scan and saves it (``--keep-data DIR`` keeps it for the next
@@ -53,6 +56,7 @@ scan), then times ``pdvc.calibrate``.  Printed per size:
     python benchmarks/bench_calibrate.py --sizes small            # the demo's size only
     python benchmarks/bench_calibrate.py --standard               # small, medium, standard (long)
     python benchmarks/bench_calibrate.py --sizes standard --keep-data /tmp/pdvc_bench   # reuse the simulated scan
+    python benchmarks/bench_calibrate.py --sizes medium --precession 0.5   # a precessing axis
 """
 
 from __future__ import annotations
@@ -87,7 +91,7 @@ def _problem(name: str):
     import numpy as np
 
     import pdvc
-    from pdvc.simulate import cast_iron_phantom, combine_poses, drift_poses, tilted_axis_poses
+    from pdvc.simulate import cast_iron_phantom, combine_poses, drift_poses, precession_poses, tilted_axis_poses
 
     n, nv, det, sod, odd, _ = SIZES[name]
     vg = pdvc.VolumeGeometry((n, n, n), voxel_size=1.0)
@@ -98,11 +102,19 @@ def _problem(name: str):
         tilted_axis_poses(angles, tilt=np.deg2rad(0.5), tilt_azimuth=0.7, offset=(0.04 * n, 0.0, 0.0)),
         drift_poses(np.linspace(0.0, 1.0, nv), angles, velocity=(0.02 * n, 0.0, 0.015 * n)),
     )
+    if _precession_deg():
+        rv, t = combine_poses((rv, t), precession_poses(angles, amplitude=np.deg2rad(_precession_deg())))
     return geom, vg, phantom, rv, t
 
 
+def _precession_deg() -> float:
+    """``--precession``, handed to the child processes through the environment."""
+    return float(os.environ.get("PDVC_BENCH_PRECESSION_DEG", "0") or 0)
+
+
 def _data_path(data_dir: str, name: str) -> str:
-    return os.path.join(data_dir, f"bench_calibrate_{name}_seed{SEED}.npy")
+    prec = f"_prec{_precession_deg():g}" if _precession_deg() else ""
+    return os.path.join(data_dir, f"bench_calibrate_{name}{prec}_seed{SEED}.npy")
 
 
 # --------------------------------------------------------------------------- simulation child
@@ -349,6 +361,7 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
           f"imports, warm-up, projections {projections.nbytes / 2**20:.0f} MiB)")
     print(f"  reprojection error vs truth (gauge-free, 125 points): nominal {err_nominal:.3f} px -> calibrated {err:.4f} px")
     print(f"  status {res.status.name.lower()} (success {res.success}): {res.message}")
+    print(f"  motion model: {res.options.get('model', 'n/a')}")
     print(f"  reference (64^3 x 36 views): median {ref_s:.3f} s of {['%.3f' % r for r in ref]} (3 before, 3 after); "
           f"total/reference {total / ref_s:.0f}", flush=True)
     out = dict(
@@ -384,6 +397,8 @@ def main() -> int:
     ap.add_argument("--standard", action="store_true", help="also run the standard problem (256^3, 360 views; long)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--keep-data", metavar="DIR", help="keep the simulated scans there and reuse them")
+    ap.add_argument("--precession", type=float, default=0.0, metavar="DEG",
+                    help="add a once-per-turn precession of the axis of this amplitude (default 0: none)")
     ap.add_argument("--_child", help=argparse.SUPPRESS)
     ap.add_argument("--_simulate", help=argparse.SUPPRESS)
     ap.add_argument("--_data", help=argparse.SUPPRESS)
@@ -405,6 +420,8 @@ def main() -> int:
     if bad:
         ap.error(f"unknown size(s) {bad}; choose among {list(SIZES)}")
 
+    if args.precession:
+        os.environ["PDVC_BENCH_PRECESSION_DEG"] = repr(float(args.precession))
     env = dict(os.environ)
     env["NUMBA_NUM_THREADS"] = str(args.threads)
     env.setdefault("OMP_NUM_THREADS", "1")

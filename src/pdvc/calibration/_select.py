@@ -1,10 +1,11 @@
 """Automatic choice of the motion model: candidates scored on views they were not fitted to.
 
-After the first model stage has converged, every candidate model (the
-stage's own and those it names in ``Stage.candidates``) measures an
-increment from the stage's poses on one half of the views and predicts the
-other half; the data consistency of those predictions (χ² of the views left
-out, against the same correlation volume) scores it. Both halves take each
+Before the first round of the first stage that names candidates
+(``Stage.candidates``), from the poses it starts from (the warm-up's), the
+stage's own model and every candidate measure an increment on one half of
+the views and predict the other half; the data consistency of those
+predictions (χ² of the views left out, against the correlation volume the
+stage's first round makes anyway) scores each model. Both halves take each
 role (two-fold cross-validation by interleaved blocks of views). A candidate
 replaces the stage's own model only when it lowers that score by more than
 ``MIN_MODEL_GAIN``: a richer model has to predict views it never saw better,
@@ -157,12 +158,12 @@ def compare_models(
     pts = sample_points(vol_geom, 3, fraction=0.8)
     passes = 0
     c = np.asarray(center, float)
+    bases = {k: make_basis(m["basis"], angles=angles, times=t_all).matrix for k, m in models.items()}
     for fit, test in (folds, folds[::-1]):
         g_fit, g_test = geom[fit], geom[test]
         p0_fit, p0_test = poses[fit], poses[test]
         for name, m in models.items():
-            full = make_basis(m["basis"], angles=angles, times=t_all)
-            S = full.matrix
+            S = bases[name]
             res = correlate(
                 volume, vol_geom, projections[fit], g_fit, basis=S[fit], frame=m["frame"], fixed=m["fixed"], center=c,
                 weights=_subset(weights, fit), noise_variance=noise_variance, angles=angles[fit],
@@ -180,10 +181,10 @@ def compare_models(
                 d_test = params_to_sample(d_test, lab_to_sample_map(g_test))
             pred = p0_test @ Poses.from_params(d_test, c)
             # how far the model moves the sample from the stage's poses, gauge-free (a motion of the whole scan is not one)
-            rv_all, t_all_ = np.empty((n, 3)), np.empty((n, 3))
-            rv_all[fit], t_all_[fit] = res.poses.rotvecs, res.poses.translations
-            rv_all[test], t_all_[test] = pred.rotvecs, pred.translations
-            moved_to = Poses(rv_all, t_all_).gauge_fixed(geom, center=c)
+            rv_m, t_m = np.empty((n, 3)), np.empty((n, 3))
+            rv_m[fit], t_m[fit] = res.poses.rotvecs, res.poses.translations
+            rv_m[test], t_m[test] = pred.rotvecs, pred.translations
+            moved_to = Poses(rv_m, t_m).gauge_fixed(geom, center=c)
             shift = geom[test].apply(moved_to[test]).project_points(pts) - geom[test].apply(start[test]).project_points(pts)
             moved[name] += float(np.sum(shift**2)) / pts.shape[0]
             prob, _ = _problem(volume, vol_geom, projections[test], g_test, "constant", "sample", c, (), _subset(weights, test),
@@ -200,4 +201,6 @@ def compare_models(
     choice = ModelChoice(winner=winner, own=own_name, scores=scores, gain=gain if winner != own_name else 0.0, n_views=n,
                          n_passes=passes, shifts_px=shifts, min_gain=float(min_gain))
     log.info("motion model: %s", choice.text())
+    log.debug("motion model: each model's predictions moved the sample by %s px (gauge-free RMS, the views left out)",
+              {k: round(v, 4) for k, v in shifts.items()})
     return choice
