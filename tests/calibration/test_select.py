@@ -152,3 +152,21 @@ def test_candidates_are_a_config_key(tmp_path):
     for bad in (["wobble"], "precession", ["precession", "precession"]):
         with pytest.raises(ConfigError, match=r"calibration\.candidates"):
             load_config(raw(candidates=bad), base_dir=tmp_path)
+
+
+def test_too_few_views_to_compare_keep_the_model_and_say_why():
+    # 12 views: halves of 6 cannot determine the precession model's 7 functions (and a comparison needs 8 per half)
+    c = make_case("offset", n=24, n_views=12)
+    g = c.scan.geometry
+    kw = dict(noise_variance=estimate_noise_variance(c.scan.projections), angles=np.linspace(0, 2 * np.pi, 12, endpoint=False),
+              center=c.vol_geom.offset, own_name="axis")
+    args = (c.truth, c.vol_geom, c.scan.projections, g, Poses.identity(12), dict(MODELS["axis"]), {"precession": dict(MODELS["precession"])})
+    ch = compare_models(*args, **kw)
+    assert ch.winner == "axis" and not ch.scores and "12 views" in ch.text() and "not compared" in ch.text()
+    c20 = make_case("offset", n=24, n_views=20)
+    kw["angles"] = np.linspace(0, 2 * np.pi, 20, endpoint=False)
+    ch = compare_models(c20.truth, c20.vol_geom, c20.scan.projections, c20.scan.geometry, Poses.identity(20), dict(MODELS["axis"]),
+                        {"precession": dict(MODELS["precession"])}, **kw)
+    assert ch.winner == "axis" and not ch.scores and "cannot determine precession" in ch.note
+    res = pdvc.calibrate(c.scan.projections, g, c.vol_geom, max_outer=2)  # runs, and says so
+    assert "not compared" in res.options["model"]

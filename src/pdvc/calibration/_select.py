@@ -41,6 +41,8 @@ MODELS = {
 MIN_MODEL_GAIN = 0.007
 # interleaved blocks of views: each half holds every other block
 _BLOCKS = 16
+# the fewest views a half may hold for a comparison
+_MIN_HALF = 8
 
 
 def model_fields(name: str) -> dict:
@@ -88,6 +90,8 @@ class ModelChoice:
         poses, over the views left out (gauge-free).
     min_gain : float
         The gain a candidate had to exceed.
+    note : str
+        Why a model was not compared ("" when all were).
     """
 
     winner: str
@@ -98,6 +102,7 @@ class ModelChoice:
     n_passes: int = 0
     shifts_px: dict = field(default_factory=dict)
     min_gain: float = MIN_MODEL_GAIN
+    note: str = ""
 
     @property
     def changed(self) -> bool:
@@ -105,7 +110,7 @@ class ModelChoice:
 
     def text(self) -> str:
         if not self.scores:
-            return f"{self.winner} (not compared)"
+            return f"{self.winner} (not compared{': ' + self.note if self.note else ''})"
         parts = ", ".join(f"{k} {v:.4g}" for k, v in self.scores.items())
         if self.changed:
             return f"{self.winner}: predicts the views it was not fitted to {100 * self.gain:.2g} % better than {self.own} " \
@@ -115,7 +120,7 @@ class ModelChoice:
 
     def to_dict(self) -> dict:
         return dict(winner=self.winner, own=self.own, scores=dict(self.scores), gain=self.gain, n_views=self.n_views,
-                    n_passes=self.n_passes, shifts_px=dict(self.shifts_px), min_gain=self.min_gain)
+                    n_passes=self.n_passes, shifts_px=dict(self.shifts_px), min_gain=self.min_gain, note=self.note)
 
 
 def halves(n_views: int, blocks: int = _BLOCKS) -> tuple:
@@ -150,7 +155,19 @@ def compare_models(
     t_all = None if times is None else np.asarray(times, float)
     models = {own_name: own}
     models.update({k: v for k, v in candidates.items() if k != own_name})
+    if n < 2 * _MIN_HALF:
+        return ModelChoice(winner=own_name, own=own_name, n_views=n, min_gain=float(min_gain), note=f"{n} views")
     folds = halves(n)
+    bases = {k: make_basis(m["basis"], angles=angles, times=t_all).matrix for k, m in models.items()}
+    # each half must determine a model's increment (two views per function at least), or the model is not compared
+    few = min(f.size for f in folds)
+    short = [k for k, S in bases.items() if few < max(2 * S.shape[1], _MIN_HALF)]
+    if short:
+        note = f"half of the {n} views ({few}) cannot determine {', '.join(short)}"
+        log.info("motion model: %s not compared: %s", ", ".join(short), note)
+        if own_name in short or len(short) == len(models) - 1:
+            return ModelChoice(winner=own_name, own=own_name, n_views=n, min_gain=float(min_gain), note=note)
+        models = {k: m for k, m in models.items() if k not in short}
     start = poses.gauge_fixed(geom, center=np.asarray(center, float))
     rss = {k: 0.0 for k in models}
     wsum = {k: 0.0 for k in models}
@@ -158,7 +175,6 @@ def compare_models(
     pts = sample_points(vol_geom, 3, fraction=0.8)
     passes = 0
     c = np.asarray(center, float)
-    bases = {k: make_basis(m["basis"], angles=angles, times=t_all).matrix for k, m in models.items()}
     for fit, test in (folds, folds[::-1]):
         g_fit, g_test = geom[fit], geom[test]
         p0_fit, p0_test = poses[fit], poses[test]
