@@ -171,9 +171,9 @@ def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **k
 def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage, weights=None):
     """The volume a stage correlates against, on ``refined_grid(vol_geom, stage.oversample)``.
 
-    ``vol_geom`` is the stage's grid. FDK/FBP with ``oversample_by="spline"``
-    reconstructs on it and interpolates by cubic B-splines; otherwise the
-    stage's reconstruction runs on the fine grid itself. ``weights`` (the
+    ``vol_geom`` is the stage's grid. FDK/FBP and ``nonneg_ls`` with
+    ``oversample_by="spline"`` reconstruct on it and interpolate by cubic
+    B-splines; otherwise the stage's reconstruction runs on the fine grid. ``weights`` (the
     stage's detector weights) weigh the rays of the ``nonneg_ls`` fit (a ray
     that leaves the volume through a face the sample crosses does not pull
     it); FDK, FBP and CGLS take every ray.
@@ -188,6 +188,8 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
             return spline_upsample(reconstruct(projections, vol_geom, geom), k)
         return reconstruct(projections, fine, geom)
     if r == "nonneg_ls":
+        if k > 1 and stage.oversample_by == "spline":
+            return spline_upsample(nonneg_ls(projections, vol_geom, geom, weights=weights), k)
         return nonneg_ls(projections, fine, geom, coarsen=k, weights=weights)
     return cgls(projections, fine, geom)
 

@@ -88,11 +88,12 @@ class Stage:
     oversample : int
         Correlation voxels are ``oversample`` x finer than the stage's grid.
     oversample_by : {"spline", "reconstruction"}
-        How the FDK/FBP correlation volume reaches the finer grid:
-        ``"spline"`` reconstructs on the stage's grid and interpolates by
-        cubic B-splines (:func:`pdvc.recon.spline_upsample`; ``oversample³``
-        x cheaper); ``"reconstruction"`` back-projects on the fine grid.
-        ``nonneg_ls`` and ``cgls`` always solve on the fine grid.
+        How the FDK/FBP or ``nonneg_ls`` correlation volume reaches the
+        finer grid: ``"spline"`` reconstructs on the stage's grid and
+        interpolates by cubic B-splines (:func:`pdvc.recon.spline_upsample`;
+        ``oversample³`` x cheaper); ``"reconstruction"`` reconstructs on the
+        fine grid (``nonneg_ls``: B-spline unknowns on the stage's grid, the
+        projector on the fine one). ``cgls`` always solves on the fine grid.
     rounds : int
         Rounds (reconstruct, correlate, fix the gauge) at most.
     tol_px : float
