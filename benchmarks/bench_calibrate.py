@@ -177,7 +177,7 @@ class _Probe:
             self.phase = "init"
         elif ev == "reconstruct":
             self.phase = "nominal" if info.get("what") == "nominal" else "final"
-        elif ev == "stage":
+        elif ev in ("stage", "choosing"):  # a stage's model choice runs before its "stage" event, in its time
             self.phase = f"stage {info.get('index')}"
         elif ev == "assess":
             self.phase = "assess"

@@ -70,6 +70,9 @@ class _Progress:
             msg = f"resuming at stage {info.get('stage_index', 0) + 1} after {info.get('rounds')} rounds"
         elif event == "skip":
             msg = f"  {info.get('name')}: skipped, {info.get('why', '')}"
+        elif event == "choosing":
+            msg = (f"stage {info['index'] + 1}/{info['n_stages']} '{info['name']}' at scale {info['scale']}: comparing the motion "
+                   f"models {', '.join(info.get('models', []))}, each fitted on half the views and scored on the other half")
         elif event == "model":
             msg = f"  motion model ({info.get('elapsed_s', 0.0):.1f} s): {info.get('text', '')}"
         elif event == "assess":

@@ -108,8 +108,10 @@ def test_the_driver_chooses_once_before_the_model_runs_the_winner_and_keeps_the_
     # against 0.09 px for the axis model (nominal 1.02 px).
     c = _case48("precession_drift")
     stages = recipe_stages("default", c.scan.geometry.det_shape, scales=(1,), max_outer=2, jolts=False)
-    saved = []
-    out = _run(c, stages, checkpoint=lambda d: saved.append(d))
+    saved, events = [], []
+    out = _run(c, stages, checkpoint=lambda d: saved.append(d), progress=lambda d: events.append((d["event"], d.get("index"))))
+    # the choice is announced, reported, then the stage runs the winner (its time holds the choice)
+    assert [e for e in events if e[0] in ("choosing", "model", "stage")] == [("stage", 0), ("choosing", 1), ("model", None), ("stage", 1)]
     ch = out.model_choice
     assert ch is not None and ch.winner == "precession" and ch.gain > 0.007
     models = [h["model"] for h in out.history]

@@ -357,6 +357,9 @@ def run_stages(
             # the first stage with candidates chooses its model, from the poses it starts from: does a candidate predict
             # views it was not fitted to better than the stage's own model?
             tc = time.perf_counter()
+            if progress is not None:
+                progress(dict(event="choosing", index=i, n_stages=len(stages), name=stage.name, scale=stage.scale,
+                              models=[model_name(stage)] + list(stage.candidates)))
             primed = (poses, ctx.stage_volume(stage, poses))
             choice = ctx.choose_model(stage, poses, primed[1])
             if progress is not None:
