@@ -54,7 +54,6 @@ class StageOutcome:
     message: str
     rounds: int
     elapsed_s: float
-    until: str = "converged"
 
 
 class PosesResult:
@@ -379,13 +378,12 @@ def run_stages(
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
         fit_volume = (poses, stage, run.volume_at_poses) if run.volume_at_poses is not None else fit_volume
-        outcomes.append(StageOutcome(stage.name, stage.scale, status, status.message, run.n_rounds, time.perf_counter() - t0,
-                                     stage.until))
+        outcomes.append(StageOutcome(stage.name, stage.scale, status, status.message, run.n_rounds, time.perf_counter() - t0))
         if checkpoint is not None:
             checkpoint(dict(poses=poses, history=[dict(h) for h in history], stage_index=i + 1, rounds_done=0))
         log.info("stage %d (%s, scale %d): %s after %d round(s)", i, stage.name, stage.scale, status.message, run.n_rounds)
     # the run's status is that of the last stage that had to converge (warm-ups and refinements run their rounds)
-    musts = [o for o in outcomes if o.until == "converged"]
+    musts = [o for o, s in zip(outcomes, stages[i0:]) if s.until == "converged"]
     last = musts[-1] if musts else outcomes[-1] if outcomes else StageOutcome(
         stages[-1].name, stages[-1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0
     )

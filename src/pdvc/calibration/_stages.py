@@ -127,13 +127,12 @@ class Stage:
         later stages keep that choice.
     candidates : tuple of str
         Named motion models (:data:`pdvc.calibration.MODELS`: ``"axis"``,
-        ``"precession"``) compared with the stage's own once its rounds
-        end, on views they were not fitted to (:func:`compare_models`); a
-        candidate that predicts them better by more than ``MIN_MODEL_GAIN``
-        replaces the model, which then runs its own rounds from the poses
-        reached, and every later stage that lists candidates takes it. Once
-        per run, at the first such stage. Empty (default for a stage): no
-        choice.
+        ``"precession"``) compared with the stage's own before its first
+        round, from the poses it starts from, on views they were not fitted
+        to (:func:`compare_models`); a candidate that predicts them better
+        by more than ``MIN_MODEL_GAIN`` replaces the stage's model, and
+        every later stage that lists candidates takes it. Once per run, at
+        the first such stage. Empty (default for a stage): no choice.
     max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
         The engine's options (:func:`pdvc.correlate`).
     """

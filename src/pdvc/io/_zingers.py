@@ -14,10 +14,13 @@ alone. Photon noise grows behind the sample (the variance of a line
 integral is ``exp(p) / i0``), so ``r`` minus its median per view is scaled
 by ``exp(-Π f / 2)`` before its robust standard deviation σ (1.4826 MAD) is
 taken over the scan. A pixel is a zinger when its scaled residual is above
-``k`` σ and none of its four neighbours is above 3 σ or a quarter of it (the
-ramp filter of the reconstruction spreads a little of a zinger to its
-neighbours); it is replaced by the median of its eight neighbours in the
-same view. Tomography toolkits remove
+``k`` σ, none of its four neighbours is above 3 σ or 1/2.5 of it (the ramp
+filter of the reconstruction spreads a little of a zinger to its
+neighbours), and the view before or after does not hold a residual of the
+same sign within a pixel (the sample's own structure, misplaced, does);
+a pixel alone in half the views or more is a hot or dead pixel and is
+replaced in every view. A zinger is replaced by the median of its eight
+neighbours in the same view. Tomography toolkits remove
 outliers with a median filter and a threshold on the data alone (e.g.
 TomoPy's ``remove_outlier``): on fine structure (the 1–2 px struts of the
 benchmark's foams) that flags 300–1600 pixels of a clean 40³ scan and

@@ -90,7 +90,7 @@ def build_report(out, result, *, projections, angles, params_lab):
     }
     if result.initial_offset_px is not None:
         summary["coarse axis offset (px)"] = result.initial_offset_px
-    fitted = str((getattr(result, "options", None) or {}).get("background", "")).startswith(("an ", "a "))
+    fitted = any(h.get("background", -1) >= 0 for h in (getattr(result, "history", None) or ()))
     for when, d in zip(("nominal", "returned"), getattr(result, "residual", ())):
         # the diagnosis is of the data against the volume: a background the correlation fitted is still in it
         summary[f"residual, {when} geometry"] = d.describe() + (" (before the background per view fitted with the motion)"
