@@ -108,6 +108,50 @@ def test_adjoint_dot_product_z_dominant_rays():
 
 
 @pytest.mark.parametrize("kind", KINDS)
+def test_adjoint_independent_of_slabs(kind, monkeypatch):
+    """Any cut of the volume into slabs (one, thin ones of 2 rows, an odd
+    count, uneven ones) gives the same back-projection: every sample belongs
+    to exactly one slab, including those on a slab boundary (a cut at the
+    height of a ray that runs along it)."""
+    from pdvc.projectors import _numba
+
+    rng = np.random.default_rng(5)
+    vg = pdvc.VolumeGeometry((24, 21, 25), voxel_size=(1.0, 1.1, 0.9))
+    geom = random_geometry(kind, rng, n_views=5, det_shape=(28, 30), tilt=0.3, shift=2.0)
+    y = rng.standard_normal((geom.n_views,) + geom.det_shape).astype(np.float32)
+    x = rng.standard_normal(vg.shape).astype(np.float32)
+    lhs = np.vdot(forward(x, vg, geom).astype(np.float64), y.astype(np.float64))
+    results = []
+    for edges in ([0, 24], [0, 12, 24], [0, 7, 15, 24], list(range(0, 25, 2)), [0, 2, 4, 13, 21, 24]):
+        monkeypatch.setattr(_numba, "_slab_edges", lambda shape, e=edges: np.asarray(e, np.int64))
+        b = backproject(y, vg, geom)
+        rhs = np.vdot(x.astype(np.float64), b.astype(np.float64))
+        assert abs(lhs - rhs) <= 1e-5 * np.sqrt(np.vdot(x, x) * np.vdot(y, y))
+        results.append(b)
+    for b in results[1:]:
+        np.testing.assert_allclose(b, results[0], rtol=0, atol=1e-5 * np.abs(results[0]).max())
+
+
+def test_adjoint_slab_boundary_on_a_ray(monkeypatch):
+    """Rays that run exactly along a slab boundary (horizontal rays of a
+    parallel beam at integer heights) are scattered once, not twice."""
+    from pdvc.projectors import _numba
+
+    vg = pdvc.VolumeGeometry((16, 12, 12))
+    geom = pdvc.parallel(np.linspace(0, np.pi, 7, endpoint=False), det_shape=(16, 14), pixel=1.0)
+    y = np.ones((geom.n_views,) + geom.det_shape, np.float32)
+    x = np.random.default_rng(0).random(vg.shape).astype(np.float32)
+    lhs = np.vdot(forward(x, vg, geom).astype(np.float64), y.astype(np.float64))
+    monkeypatch.setattr(_numba, "_slab_edges", lambda shape: np.asarray([0, 16], np.int64))
+    one = backproject(y, vg, geom)
+    monkeypatch.setattr(_numba, "_slab_edges", lambda shape: np.arange(0, 17, 2, dtype=np.int64))
+    many = backproject(y, vg, geom)
+    for b in (one, many):
+        assert abs(lhs - np.vdot(x.astype(np.float64), b.astype(np.float64))) <= 1e-5 * abs(lhs)
+    np.testing.assert_allclose(many, one, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_jacobian_matches_finite_differences(kind):
     """Central differences of the forward projector under apply_poses.
 

@@ -32,9 +32,25 @@ def geometry_table(vol_geom: VolumeGeometry, geom: VectorGeometry) -> np.ndarray
     return table
 
 
-def _slab_edges(nz: int) -> np.ndarray:
-    """z-row slabs for the adjoint: several per thread so the static split balances."""
-    n = max(1, min(nz // 2, 4 * numba.get_num_threads()))
+SLAB_ROWS = 8
+
+
+def _slab_edges(shape) -> np.ndarray:
+    """z-row slabs for the adjoint: about ``SLAB_ROWS`` rows each, twice a multiple of the threads.
+
+    The adjoint runs the even slabs in parallel, then the odd ones, so each
+    half must keep every thread busy. Thin slabs clip the rays that cross
+    them again and again; thick ones fall out of cache. Measured on 2
+    threads (AMD EPYC, 1 MiB of L2 per core, 32 MiB of L3, 2026-12-02),
+    adjoint over forward time: 256³ x 60 views, 16 / 32 / 64 / 128 slabs:
+    1.83 / 1.37 / 1.44 / 1.69; 128³ x 180 views, 4 / 8 / 16 / 32 slabs:
+    1.93 / 1.87 / 1.71 / 1.87.
+    """
+    nz = shape[0]
+    t2 = 2 * numba.get_num_threads()
+    n = max(1, round(nz / SLAB_ROWS))
+    n = t2 * max(1, -(-n // t2))
+    n = max(1, min(nz // 2, n))  # slabs of 2 rows at least
     return np.linspace(0, nz, n + 1).round().astype(np.int64)
 
 
@@ -59,7 +75,7 @@ class NumbaBackend:
 
     def backproject(self, projections, vol_geom, geom, out):
         shape_xyz, sp, table, cone = self._common(vol_geom, geom)
-        edges = _slab_edges(vol_geom.shape[0])
+        edges = _slab_edges(vol_geom.shape)
         K.adjoint_kernel(projections, shape_xyz, sp, table, cone, edges, out.reshape(-1))
         return out
 
