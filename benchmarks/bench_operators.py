@@ -11,9 +11,13 @@ it, after a warm-up (numba compile or cache load), pdvc's operator and the
 fixed reference forward projector of ``benchmarks/_reference.py`` (and LEAP
 where importable) are timed in alternation, ``--repeats`` times each, on
 the same volume and geometry; the table gives the medians and the ratio
-pdvc / reference.  An absolute time on a shared machine says little; the
-ratio travels.  Peak memory: the resident memory the operator adds to the
-process (inputs allocated before the baseline is read).
+pdvc / reference.  The adjoint, Jacobian and FDK children also time pdvc's
+forward projection in the same rotation: "/forward" is the operator's time
+over it (issue #13's targets for the adjoint and the Jacobian pass).  An
+absolute time on a shared machine says little; the ratio travels.  Peak
+memory: the resident memory the operator's first run adds to the process
+(inputs allocated before the baseline is read; LEAP and the forward beside
+it not counted).
 
     python benchmarks/bench_operators.py                 # standard problem (about 15 min on 2 cores)
     python benchmarks/bench_operators.py --size 128      # the same problem at half resolution (~2 min)
@@ -29,28 +33,31 @@ LEAP (optional)
 If ``import leapctype`` works, LEAP's CPU forward projector is timed on its
 circular cone path (``set_conebeam``) and on its per-view path
 (``set_modularbeam``, from the same vectors as pdvc), its back-projection
-and its FDK (``FBP``), in the same rotation.  LEAP was *not* built on the
-machine where this script was written (no network access there); these are
-the steps for a CPU-only build from LEAP's source tree as of v1.26
-(github.com/LLNL/LEAP, commit 0c8846f, Dec 2024), which needs cmake >= 3.18,
-a C++17 compiler and OpenMP::
+and its FDK (``FBP``), in the same rotation. A CPU-only build from LEAP's
+source tree, as done for the README's figures (github.com/LLNL/LEAP, v1.26,
+commit 0c8846f; cmake >= 3.18, a C++17 compiler with OpenMP)::
 
     git clone https://github.com/LLNL/LEAP.git && cd LEAP
-    cp src/cpu_CMakeLists.txt src/CMakeLists.txt   # the CPU-only build: no CUDA, -D__USE_CPU
-    sh etc/build.sh                                # cmake .. && cmake --build . -> build/lib/libleapct.so
+    cp src/cpu_CMakeLists.txt src/CMakeLists.txt    # no CUDA: -D__USE_CPU
+    git apply /path/to/pdvc/benchmarks/leap_cpu_only.patch
+    mkdir build && cd build && cmake .. -DCMAKE_BUILD_TYPE=Release && cmake --build . -j && cd ..
     SITE=$(/path/to/venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
     cp build/lib/libleapct.so src/leapctype.py src/leap_filter_sequence.py \
        src/leap_preprocessing_algorithms.py "$SITE"/
+    /path/to/venv/bin/pip install imageio                  # leapctype imports it
     /path/to/venv/bin/python -c "import leapctype; leapctype.tomographicModels().about()"
 
-(``leapctype`` loads ``libleapct.so`` from its own folder.  ``pip install .``
-runs the same ``etc/build.sh`` but, with the stock ``src/CMakeLists.txt``,
-requires CUDA, and ``setup.py`` requires torch; ``setup_ctype.py`` does not.)
-For a -O3 build add ``-DCMAKE_BUILD_TYPE=Release`` to the ``cmake ..`` line
-of ``etc/build.sh``.  LEAP's CPU code runs ``omp_get_num_procs()`` threads;
-the children here are pinned to ``--threads`` CPUs, which that honours.
-LEAP's projectors (separable footprint) are another discretisation and its
-axis conventions differ: only times are compared, never values.
+``leap_cpu_only.patch`` guards three GPU calls in
+``filtered_backprojection.cpp`` that the CPU-only build of that commit does
+not compile without (``zeroPadForOffsetScan_GPU`` twice, ``cudaFree``); it
+changes no CPU code path. ``Release`` compiles with ``-O3``. LEAP's CPU
+code runs ``omp_get_num_procs()`` threads; the children here are pinned to
+``--threads`` CPUs, which that honours. LEAP's projectors (separable
+footprint) are another discretisation and its axis conventions differ:
+only times are compared, never values (on the 128³
+problem LEAP's circular forward projection of the same volume sums to
+pdvc's within 3·10⁻⁶, so both project the same object onto the same
+detector).
 """
 
 from __future__ import annotations
@@ -93,8 +100,7 @@ def standard_problem(n: int, views: int):
 def _leap_runs(op, vol, vg, geom, angles, proj):
     """(name, callable) pairs timing LEAP for ``op``; empty when LEAP is not importable.
 
-    Untested here (LEAP was not built on this machine): any failure is
-    reported and LEAP is skipped.
+    Any failure to set LEAP up is reported and LEAP is skipped.
     """
     try:
         from leapctype import tomographicModels
@@ -186,18 +192,23 @@ def _child(op: str, n: int, views: int, repeats: int, ref_views: int, threads: i
         raise SystemExit(f"unknown op {op!r}")
     yard = Yardstick(vol, vg, geom, ref_views)
     leap, leap_note = _leap_runs(op, vol, vg, geom, angles, proj)
+    # the targets of the adjoint and the Jacobian pass are ratios to pdvc's forward: time it in the same rotation
+    fwd = [("pdvc forward", lambda: forward(vol, vg, geom))] if op != "forward" else []
     base = _rss_mib()
-    times = alternate(run, yard, repeats, others=leap)
+    run()  # the operator's own peak, before LEAP or the forward run beside it
+    extra_peak = _rss_mib() - base
+    times = alternate(run, yard, repeats, others=leap + fwd)
     med = {name: float(np.median(t)) for name, t in times.items()}
     return {
         "op": op,
         "median_s": med["pdvc"],
         "reference_s": med["reference"],
+        "forward_s": med.get("pdvc forward", med["pdvc"]),
         "times_s": times,
         "leap_s": {name: med[name] for name, _ in leap},
         "leap_note": leap_note,
         "reference_note": yard.describe(),
-        "extra_peak_mib": _rss_mib() - base,
+        "extra_peak_mib": extra_peak,
     }
 
 
@@ -226,7 +237,7 @@ def main() -> None:
              + ("  (the standard problem)" if n == 256 and args.views == 360 else ""))
     print(title)
     print(machine_line(args.threads))
-    print(f"{'operator':18s} {'median s':>9s} {'x360/views':>10s} {'ref s':>8s} {'pdvc/ref':>8s} {'extra peak MiB':>15s}"
+    print(f"{'operator':18s} {'median s':>9s} {'x360/views':>10s} {'ref s':>8s} {'pdvc/ref':>8s} {'/forward':>8s} {'extra peak MiB':>15s}"
           f"   (volume {n**3 * 4 / 2**20:.0f} MiB, projections {args.views * det[0] * det[1] * 4 / 2**20:.0f} MiB)", flush=True)
     rows, leap_rows, notes = [], [], set()
     t_start = time.perf_counter()
@@ -239,7 +250,8 @@ def main() -> None:
             continue
         r = json.loads(res.stdout.strip().splitlines()[-1])
         print(f"{op:18s} {r['median_s']:9.2f} {r['median_s'] * scale:10.1f} {r['reference_s']:8.2f} "
-              f"{r['median_s'] / r['reference_s']:8.3f} {r['extra_peak_mib']:15.0f}", flush=True)
+              f"{r['median_s'] / r['reference_s']:8.3f} {r['median_s'] / r['forward_s']:8.2f} {r['extra_peak_mib']:15.0f}",
+              flush=True)
         rows.append((op, r["median_s"], r["reference_s"]))
         notes.add(r["reference_note"])
         notes.add(r["leap_note"])
