@@ -313,3 +313,25 @@ def test_a_round_whose_correlation_lowers_nothing_is_a_fixed_point_not_a_converg
     assert out.status == Status.FIXED_POINT
     assert out.history == ()  # no round was recorded as a move
     assert out.geometry == c.scan.geometry
+
+
+def test_nonneg_ls_step_bound_is_estimated_once_per_grid(small_case, monkeypatch):
+    """The rounds of a nonneg_ls stage reconstruct again and again on one grid: the
+    step bound (8 forward and 8 back-projections) is estimated at the first and
+    reused, and the volumes are those nonneg_ls makes with that bound."""
+    from pdvc.calibration import _driver
+    from pdvc.recon import nonneg_ls_lipschitz
+
+    c = small_case
+    calls, bounds = [], []
+    monkeypatch.setattr(_driver, "nonneg_ls_lipschitz",
+                        lambda *a, **k: calls.append(a[0].shape) or nonneg_ls_lipschitz(*a, **k))
+    real = _driver.nonneg_ls
+    monkeypatch.setattr(_driver, "nonneg_ls", lambda *a, **k: bounds.append(k["lipschitz"]) or real(*a, **k))
+    out = self_calibrate(
+        c.scan.projections, c.scan.geometry, c.vol_geom, reconstruct="nonneg_ls", warmup=0, max_outer=3, tol_px=1e-9,
+        **TRANSLATIONS,
+    )
+    assert len(out.history) >= 2 and len(bounds) >= 2
+    assert len(calls) == len(set(calls)) == 1
+    assert all(b == bounds[0] and b > 0 for b in bounds)

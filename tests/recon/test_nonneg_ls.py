@@ -5,7 +5,7 @@ import pytest
 
 import pdvc
 from pdvc.errors import PdvcError
-from pdvc.recon import fdk, nonneg_ls
+from pdvc.recon import fdk, nonneg_ls, nonneg_ls_lipschitz
 from pdvc.recon._iterative import _along, spline_upsampling_matrix
 
 from ..conftest import gaussian_blob_volume
@@ -103,6 +103,9 @@ def test_nonneg_ls_clips_what_least_squares_would_make_negative(blob_scan):
         (dict(n_iter=-1), PdvcError, "n_iter"),
         (dict(n_iter=2.5), PdvcError, "n_iter"),
         (dict(coarsen=2, support=np.ones((4, 4, 4), bool)), pdvc.ShapeError, "support"),
+        (dict(lipschitz=-1.0), PdvcError, "lipschitz"),
+        (dict(lipschitz=float("nan")), PdvcError, "lipschitz"),
+        (dict(lipschitz="1"), PdvcError, "lipschitz"),
     ],
 )
 def test_nonneg_ls_rejects_bad_options(blob_scan, kw, err, match):
@@ -141,3 +144,29 @@ def test_nonneg_ls_weights_keep_rays_that_see_outside_the_volume_from_pulling_it
         nonneg_ls(p, vg, geom, weights=np.ones((3, 3), np.float32), n_iter=1)
     with pytest.raises(Exception, match="weights"):
         nonneg_ls(p, vg, geom, weights=2 * w, n_iter=1)
+
+
+def test_nonneg_ls_lipschitz_is_the_top_eigenvalue_and_a_given_one_is_used(blob_scan):
+    """``nonneg_ls_lipschitz`` is the step bound ``nonneg_ls`` estimates itself
+    (the same result when passed back), it is the largest eigenvalue of
+    UᵀΠᵀΠU (no unit vector is amplified more, checked on random ones), it
+    barely moves when the poses move by a fraction of a voxel, and a
+    different value passed in changes the iterations."""
+    vg, vol, geom, p = blob_scan
+    lip = nonneg_ls_lipschitz(vg, geom, coarsen=2)
+    kw = dict(coarsen=2, n_iter=6)
+    np.testing.assert_array_equal(nonneg_ls(p, vg, geom, lipschitz=lip, **kw), nonneg_ls(p, vg, geom, **kw))
+    assert not np.array_equal(nonneg_ls(p, vg, geom, lipschitz=3 * lip, **kw), nonneg_ls(p, vg, geom, **kw))
+    from pdvc.recon._iterative import _spline_operator
+
+    shape, _, _, A, AT = _spline_operator(vg, geom, 2, "auto")
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        v = rng.standard_normal(shape).astype(np.float32)
+        v /= np.linalg.norm(v)
+        assert float(np.vdot(v, AT(A(v)))) <= 1.01 * lip
+    rot = np.tile([0.0, 0.0, 0.002], (geom.n_views, 1))
+    moved = geom.apply(pdvc.Poses(rot, np.tile([0.3, -0.2, 0.1], (geom.n_views, 1))))
+    assert abs(nonneg_ls_lipschitz(vg, moved, coarsen=2) / lip - 1) < 0.02
+    with pytest.raises(pdvc.ShapeError, match="coarsen"):
+        nonneg_ls_lipschitz(vg, geom, coarsen=3)

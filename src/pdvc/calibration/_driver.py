@@ -33,7 +33,7 @@ from ..correlation import (
 )
 from ..correlation._background import auto_background
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
-from ..recon import cgls, fbp, fdk, nonneg_ls, refined_grid, spline_upsample
+from ..recon import cgls, fbp, fdk, nonneg_ls, nonneg_ls_lipschitz, refined_grid, spline_upsample
 from ..status import Status
 from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
 from ._stages import JOLT_BASIS, Stage, StageError
@@ -167,7 +167,8 @@ def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **k
     return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom, **kw)
 
 
-def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage, weights=None):
+def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage, weights=None,
+                       lipschitz: Optional[dict] = None):
     """The volume a stage correlates against, on ``refined_grid(vol_geom, stage.oversample)``.
 
     ``vol_geom`` is the stage's grid. FDK/FBP and ``nonneg_ls`` with
@@ -175,7 +176,10 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
     B-splines; otherwise the stage's reconstruction runs on the fine grid. ``weights`` (the
     stage's detector weights) weigh the rays of the ``nonneg_ls`` fit (a ray
     that leaves the volume through a face the sample crosses does not pull
-    it); FDK, FBP and CGLS take every ray.
+    it); FDK, FBP and CGLS take every ray. ``lipschitz``: a dict the caller
+    keeps between reconstructions of one scan; ``nonneg_ls`` takes its step
+    bound from it (per grid and coarsening) instead of estimating it again
+    (:func:`pdvc.recon.nonneg_ls_lipschitz`).
     """
     k = stage.oversample
     r = stage.reconstruct
@@ -187,9 +191,15 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
             return spline_upsample(reconstruct(projections, vol_geom, geom), k)
         return reconstruct(projections, fine, geom)
     if r == "nonneg_ls":
-        if k > 1 and stage.oversample_by == "spline":
-            return spline_upsample(nonneg_ls(projections, vol_geom, geom, weights=weights), k)
-        return nonneg_ls(projections, fine, geom, coarsen=k, weights=weights)
+        grid, coarsen = (vol_geom, 1) if k > 1 and stage.oversample_by == "spline" else (fine, k)
+        lip = None
+        if lipschitz is not None:
+            key = (tuple(grid.shape), tuple(grid.voxel_size), coarsen, geom.kind, geom.n_views, tuple(geom.det_shape))
+            if key not in lipschitz:
+                lipschitz[key] = nonneg_ls_lipschitz(grid, geom, coarsen=coarsen)
+            lip = lipschitz[key]
+        vol = nonneg_ls(projections, grid, geom, coarsen=coarsen, weights=weights, lipschitz=lip)
+        return spline_upsample(vol, k) if grid is vol_geom and k > 1 else vol
     return cgls(projections, fine, geom)
 
 
@@ -224,6 +234,7 @@ class _Context:
         self.center = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float)
         self.points = sample_points(vol_geom, 3, fraction=0.8)
         self._scaled: dict = {}
+        self.lipschitz: dict = {}  # nonneg_ls step bounds, per grid: estimated once per scan
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
         self.offset_sigma = float("nan")
         self.model_choice: Optional[ModelChoice] = None  # stages with candidates: decided at the first one, then kept
@@ -235,7 +246,7 @@ class _Context:
     def stage_volume(self, stage: Stage, poses: Poses):
         """The stage's correlation volume at ``poses`` (what its first round makes)."""
         p, g, vg, w, _ = self.at_scale(stage.scale)
-        return correlation_volume(p, vg, g.apply(poses), stage, weights=w)
+        return correlation_volume(p, vg, g.apply(poses), stage, weights=w, lipschitz=self.lipschitz)
 
     def choose_model(self, stage: Stage, poses: Poses, volume) -> ModelChoice:
         """Compare the stage's model with its candidates on views they were not fitted to (``docs/method.md`` §5.12)."""
@@ -508,7 +519,7 @@ class _StageRun:
         vg_c = refined_grid(vg, st.oversample)
         if not again and not (self.volume is not None and self.volume[0] is self.poses):
             self.volume = None  # at most two volumes alive: the best round's and this one
-            self.volume = (self.poses, correlation_volume(p, vg, g.apply(self.poses), st, weights=w))
+            self.volume = (self.poses, correlation_volume(p, vg, g.apply(self.poses), st, weights=w, lipschitz=ctx.lipschitz))
         vol = self.volume[1]
         # a fresh reconstruction that already fits worse than the best ends the stage: measure nothing more
         limit = self.best[0] * (1 + st.diverge_tol) if "consistency" in st.guards and self.best is not None else None

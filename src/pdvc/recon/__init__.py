@@ -15,7 +15,7 @@ projection matrix.
 
 from ._fbp import fbp, fdk
 from ._filters import FILTERS, ramp_filter_response
-from ._iterative import cgls, nonneg_ls
+from ._iterative import cgls, nonneg_ls, nonneg_ls_lipschitz
 from ._upsample import refined_grid, spline_upsample
 
-__all__ = ["fdk", "fbp", "cgls", "nonneg_ls", "refined_grid", "spline_upsample", "ramp_filter_response", "FILTERS"]
+__all__ = ["fdk", "fbp", "cgls", "nonneg_ls", "nonneg_ls_lipschitz", "refined_grid", "spline_upsample", "ramp_filter_response", "FILTERS"]

@@ -14,7 +14,7 @@ from ._fbp import fbp, fdk
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["cgls", "nonneg_ls"]
+__all__ = ["cgls", "nonneg_ls", "nonneg_ls_lipschitz"]
 
 
 def cgls(
@@ -123,6 +123,7 @@ def nonneg_ls(
     n_iter: int = 30,
     support=True,
     weights=None,
+    lipschitz: Optional[float] = None,
     backend: str = "auto",
     callback: Optional[Callable[[int, float], None]] = None,
 ) -> np.ndarray:
@@ -143,7 +144,8 @@ def nonneg_ls(
     Algorithm: start from FDK (cone) or FBP (parallel) on the coarse grid,
     clipped to the constraints; projected gradient with Nesterov momentum
     (FISTA), step ``1 / (1.2 L)`` with ``L`` the largest eigenvalue of
-    ``UᵀΠᵀΠU`` from 8 power iterations, momentum reset when it points uphill
+    ``UᵀΠᵀΠU`` (:func:`nonneg_ls_lipschitz`: 8 power iterations, or
+    ``lipschitz`` when the caller knows it), momentum reset when it points uphill
     (gradient restart of O'Donoghue & Candès). Each iteration is one
     forward projection and one exact back-projection on ``vol_geom``.
 
@@ -168,6 +170,13 @@ def nonneg_ls(
         Detector weights ``W`` (e.g. 0 on the rays that leave the volume
         through a face the sample crosses, :func:`pdvc.calibration.truncation_weights`):
         rays of weight 0 do not pull the volume. Default: all 1.
+    lipschitz : float, optional
+        ``L`` as :func:`nonneg_ls_lipschitz` returns it for this grid,
+        ``coarsen`` and (nearly) this geometry: a caller that reconstructs
+        again and again while the poses move by fractions of a voxel (the
+        calibration's rounds) passes the first estimate and saves its 8
+        forward and 8 back-projections; the 1.2 margin of the step covers
+        the change. Default: estimated here.
     callback : callable, optional
         ``callback(iteration, residual_norm)`` after each iteration
         (residual at the extrapolated point).
@@ -180,11 +189,7 @@ def nonneg_ls(
 
     if not (isinstance(n_iter, (int, np.integer)) and not isinstance(n_iter, bool) and n_iter >= 0):
         raise PdvcError(f"n_iter must be a non-negative int, got {n_iter!r}")
-    if not (isinstance(coarsen, (int, np.integer)) and not isinstance(coarsen, bool) and coarsen >= 1):
-        raise PdvcError(f"coarsen must be an int >= 1, got {coarsen!r}")
-    f = int(coarsen)
-    if any(n % f or n // f < 2 for n in vol_geom.shape):
-        raise ShapeError(f"vol_geom.shape {tuple(vol_geom.shape)} must be multiples of coarsen={f} (at least 2x)")
+    f = _coarsen_factor(coarsen, vol_geom)
     b = np.asarray(projections, np.float32)
     if b.shape != (geom.n_views,) + tuple(geom.det_shape):
         raise ShapeError(f"projections must have shape {(geom.n_views,) + tuple(geom.det_shape)}, got {b.shape}")
@@ -193,25 +198,10 @@ def nonneg_ls(
         w = np.asarray(weights, np.float32)
         if w.shape not in (b.shape, b.shape[1:]) or not np.all((w >= 0) & (w <= 1)):
             raise ShapeError(f"weights must have shape {b.shape[1:]} or {b.shape} with values in [0, 1], got {w.shape}")
-    shape = tuple(n // f for n in vol_geom.shape)
-    vg_c = VolumeGeometry(shape, voxel_size=tuple(s * f for s in vol_geom.voxel_size), offset=vol_geom.offset)
-    mats = [spline_upsampling_matrix(n, f) for n in shape]
-
-    def up(c):
-        for ax, M in enumerate(mats):
-            c = _along(M, c, ax)
-        return np.ascontiguousarray(c, np.float32)
-
-    def up_t(x):
-        for ax, M in enumerate(mats):
-            x = _along(M.T, x, ax)
-        return np.ascontiguousarray(x, np.float32)
-
-    def A(c):
-        return forward(up(c), vol_geom, geom, backend=backend)
-
-    def AT(r):
-        return up_t(backproject(r, vol_geom, geom, backend=backend))
+    if lipschitz is not None and not (isinstance(lipschitz, (int, float, np.floating)) and lipschitz >= 0
+                                      and np.isfinite(lipschitz)):
+        raise PdvcError(f"lipschitz must be a finite float >= 0 (or None), got {lipschitz!r}")
+    shape, vg_c, up, A, AT = _spline_operator(vol_geom, geom, f, backend)
 
     x0 = (fdk if geom.kind == "cone" else fbp)(b, vg_c, geom)
     if support is True:
@@ -227,14 +217,7 @@ def nonneg_ls(
     def project(c):
         return np.where(mask, np.maximum(c, 0), 0).astype(np.float32)
 
-    v = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
-    lip = 0.0
-    for _ in range(8):
-        v = AT(A(v))
-        lip = float(np.linalg.norm(v))
-        if lip == 0.0:
-            break
-        v /= np.float32(lip)
+    lip = _power_iteration(shape, A, AT) if lipschitz is None else float(lipschitz)
     x = project(x0)
     if lip == 0.0 or n_iter == 0:
         return up(x)
@@ -256,3 +239,62 @@ def nonneg_ls(
         if callback is not None:
             callback(it + 1, rn)
     return up(x)
+
+
+def _coarsen_factor(coarsen, vol_geom: VolumeGeometry) -> int:
+    if not (isinstance(coarsen, (int, np.integer)) and not isinstance(coarsen, bool) and coarsen >= 1):
+        raise PdvcError(f"coarsen must be an int >= 1, got {coarsen!r}")
+    f = int(coarsen)
+    if any(n % f or n // f < 2 for n in vol_geom.shape):
+        raise ShapeError(f"vol_geom.shape {tuple(vol_geom.shape)} must be multiples of coarsen={f} (at least 2x)")
+    return f
+
+
+def _spline_operator(vol_geom: VolumeGeometry, geom: VectorGeometry, f: int, backend: str):
+    """(coarse shape, coarse grid, U, Π U, Uᵀ Πᵀ) of :func:`nonneg_ls` with B-spline unknowns ``f`` times coarser."""
+    shape = tuple(n // f for n in vol_geom.shape)
+    vg_c = VolumeGeometry(shape, voxel_size=tuple(s * f for s in vol_geom.voxel_size), offset=vol_geom.offset)
+    mats = [spline_upsampling_matrix(n, f) for n in shape]
+
+    def up(c):
+        for ax, M in enumerate(mats):
+            c = _along(M, c, ax)
+        return np.ascontiguousarray(c, np.float32)
+
+    def up_t(x):
+        for ax, M in enumerate(mats):
+            x = _along(M.T, x, ax)
+        return np.ascontiguousarray(x, np.float32)
+
+    def A(c):
+        return forward(up(c), vol_geom, geom, backend=backend)
+
+    def AT(r):
+        return up_t(backproject(r, vol_geom, geom, backend=backend))
+
+    return shape, vg_c, up, A, AT
+
+
+def _power_iteration(shape, A, AT, n_iter: int = 8) -> float:
+    v = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
+    lip = 0.0
+    for _ in range(n_iter):
+        v = AT(A(v))
+        lip = float(np.linalg.norm(v))
+        if lip == 0.0:
+            break
+        v /= np.float32(lip)
+    return lip
+
+
+def nonneg_ls_lipschitz(vol_geom: VolumeGeometry, geom: VectorGeometry, *, coarsen: int = 1, backend: str = "auto") -> float:
+    """The largest eigenvalue ``L`` of ``UᵀΠᵀΠU`` that :func:`nonneg_ls` steps by (8 power iterations).
+
+    It depends on the grid, ``coarsen`` and the geometry only (not on the
+    data, the support or the weights); pass it as ``nonneg_ls(...,
+    lipschitz=L)`` to reconstructions on the same grid at nearly the same
+    geometry.
+    """
+    f = _coarsen_factor(coarsen, vol_geom)
+    shape, _, _, A, AT = _spline_operator(vol_geom, geom, f, backend)
+    return _power_iteration(shape, A, AT)
