@@ -1,7 +1,7 @@
 """End-to-end benchmark of ``pdvc.calibrate`` on simulated scans (issue #11, item 1).
 
-Sizes (voxel 1, cone beam, magnification 1.5, detector pitch 1.5, default
-recipe; ``--sizes`` picks among them):
+Sizes (voxel 1; cone beam of magnification 1.5 and detector pitch 1.5
+unless said otherwise; default recipe; ``--sizes`` picks among them):
 
 * ``small``: the demo's scan size, volume 64³, 150 views, detector 76x89
   (SOD 8n, ODD 4n as in ``pdvc demo``); target <= 60 s;
@@ -12,7 +12,11 @@ recipe; ``--sizes`` picks among them):
   only runs with ``--standard`` (about 5 minutes on 2 cores).  Its default
   schedule is (4, 2), the medium's (2, 1) (``pdvc.calibration.auto_scales``
   caps the finest correlation grid at 256³), so the medium time does not
-  project to it.
+  project to it;
+* ``parallel``: a stand-in for the real synchrotron scan of issue #10/#11
+  (not available to the project): parallel beam, 91 views over 180°,
+  detector 134x160 of pitch 1, volume 134x160x160; target <= 30 s. The
+  motion below puts the axis 6.4 px off centre, as on that scan.
 
 The data are made by the analytic ellipsoid projector (no inverse crime):
 ``cast_iron_phantom`` (radius 0.36n, height 0.8n, 3n nodules), Poisson noise
@@ -54,6 +58,7 @@ scan), then times ``pdvc.calibrate``.  Printed per size:
 
     python benchmarks/bench_calibrate.py                          # small, medium (~3-5 min with simulation)
     python benchmarks/bench_calibrate.py --sizes small            # the demo's size only
+    python benchmarks/bench_calibrate.py --sizes parallel         # 91 parallel views, 134x160
     python benchmarks/bench_calibrate.py --standard               # small, medium, standard (long)
     python benchmarks/bench_calibrate.py --sizes standard --keep-data /tmp/pdvc_bench   # reuse the simulated scan
     python benchmarks/bench_calibrate.py --sizes medium --precession 0.5   # a precessing axis
@@ -72,12 +77,20 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
-# name: (volume edge, views, detector (rows, cols), sod, odd, target s)
+# name: (volume edge, views, detector (rows, cols), sod, odd, target s); sod None: parallel beam over 180°
 SIZES = {
     "small": (64, 150, (int(1.2 * 64), int(1.4 * 64)), 8.0 * 64, 4.0 * 64, 60.0),
     "medium": (128, 180, (128, 160), 500.0, 250.0, 60.0),
     "standard": (256, 360, (256, 384), 1000.0, 500.0, 300.0),
+    "parallel": (160, 91, (134, 160), None, None, 30.0),
 }
+
+
+def _describe(name: str) -> str:
+    n, nv, det, sod, _, _ = SIZES[name]
+    if sod is None:
+        return f"{det[0]}x{n}x{n}, {nv} par. views/180°, {det[0]}x{det[1]}"
+    return f"{n}^3, {nv} views, {det[0]}x{det[1]}"
 SEED = 0
 MARK = "BENCH_CALIBRATE_JSON "
 
@@ -94,9 +107,14 @@ def _problem(name: str):
     from pdvc.simulate import cast_iron_phantom, combine_poses, drift_poses, precession_poses, tilted_axis_poses
 
     n, nv, det, sod, odd, _ = SIZES[name]
-    vg = pdvc.VolumeGeometry((n, n, n), voxel_size=1.0)
-    angles = np.linspace(0, 2 * np.pi, nv, endpoint=False)
-    geom = pdvc.circular_cone(angles, sod=sod, odd=odd, det_shape=det, pixel=1.5)
+    if sod is None:  # parallel beam, pixel = voxel, the volume as tall as the detector
+        vg = pdvc.VolumeGeometry((det[0], n, n), voxel_size=1.0)
+        angles = np.linspace(0, np.pi, nv, endpoint=False)
+        geom = pdvc.parallel(angles, det_shape=det, pixel=1.0)
+    else:
+        vg = pdvc.VolumeGeometry((n, n, n), voxel_size=1.0)
+        angles = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+        geom = pdvc.circular_cone(angles, sod=sod, odd=odd, det_shape=det, pixel=1.5)
     phantom = cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=3 * n, seed=SEED)
     rv, t = combine_poses(
         tilted_axis_poses(angles, tilt=np.deg2rad(0.5), tilt_azimuth=0.7, offset=(0.04 * n, 0.0, 0.0)),
@@ -209,8 +227,8 @@ def _install_probe() -> _Probe:
     return probe
 
 
-def _warm_up() -> float:
-    """One tiny calibration: loads (or compiles) every kernel the timed run uses."""
+def _warm_up(parallel: bool = False) -> float:
+    """One tiny calibration of the same beam: loads (or compiles) every kernel the timed run uses."""
     import numpy as np
 
     import pdvc
@@ -219,8 +237,12 @@ def _warm_up() -> float:
     t0 = time.perf_counter()
     n = 24
     vg = pdvc.VolumeGeometry((n, n, n))
-    angles = np.linspace(0, 2 * np.pi, 40, endpoint=False)
-    geom = pdvc.circular_cone(angles, sod=8.0 * n, odd=4.0 * n, det_shape=(48, 56), pixel=1.5)
+    if parallel:
+        angles = np.linspace(0, np.pi, 40, endpoint=False)
+        geom = pdvc.parallel(angles, det_shape=(28, 36), pixel=1.0)
+    else:
+        angles = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+        geom = pdvc.circular_cone(angles, sod=8.0 * n, odd=4.0 * n, det_shape=(48, 56), pixel=1.5)
     rv, t = tilted_axis_poses(angles, tilt=np.deg2rad(0.3), offset=(1.0, 0.0, 0.0))
     scan = simulate_scan(cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=20), geom, rotvecs=rv, translations=t, seed=1)
     import logging
@@ -263,7 +285,7 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
 
     geom, vg, _, rv_true, t_true = _problem(name)
     yard = _reference_problem(threads)
-    t_warm = _warm_up()
+    t_warm = _warm_up(parallel=SIZES[name][3] is None)
     projections = np.load(path)
     rss_before = _rss_mib()
 
@@ -301,8 +323,8 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
     other = res.elapsed_s - known
     steps.append(("other: nominal recon, noise, trunc., motion", other, "nominal", None, None))
 
-    n, nv, det, _, _, target = SIZES[name]
-    print(f"\n[{name}] volume {n}^3, {nv} views, detector {det[0]}x{det[1]}, cone; stages: "
+    n, nv, det, sod, _, target = SIZES[name]
+    print(f"\n[{name}] {_describe(name)}, {'parallel' if sod is None else 'cone'}; stages: "
           + ", ".join(f"{o.name}@{o.scale}" for o in res.stage_outcomes), flush=True)
     print(f"  total {total:.1f} s (res.elapsed_s {res.elapsed_s:.1f}; target {target:.0f} s); warm-up (tiny calibration) {t_warm:.1f} s before")
     print(f"  {'step':42s} {'s':>7s} {'%':>5s} {'rounds':>6s} {'passes':>6s} | {'recon s':>7s} {'pass s':>7s} {'#pass':>5s} {'solve s':>7s} {'coarse s':>8s} {'guard-discarded s':>17s}")
@@ -393,7 +415,7 @@ def _run_child(argv, env) -> tuple[int, dict | None]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", default="small,medium", help="comma-separated, among small, medium, standard")
+    ap.add_argument("--sizes", default="small,medium", help="comma-separated, among small, medium, standard, parallel")
     ap.add_argument("--standard", action="store_true", help="also run the standard problem (256^3, 360 views; long)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--keep-data", metavar="DIR", help="keep the simulated scans there and reuse them")
@@ -471,8 +493,8 @@ def main() -> int:
     print("-" * len(hdr))
     for name in sizes:
         r = results.get(name, {})
-        n, nv, det, _, _, target = SIZES[name]
-        prob = f"{n}^3, {nv} views, {det[0]}x{det[1]}"
+        target = SIZES[name][-1]
+        prob = _describe(name)
         if "total" not in r:
             print(f"{name:9s} {prob:30s} {r.get('status', 'not run')}")
             continue
@@ -480,8 +502,7 @@ def main() -> int:
               f"{r['fine_pass_s'] / max(r['fine_pass_n'], 1):6.2f} {r['rss_peak']:12.0f} "
               f"{r['err']:7.4f} ({r['err_nominal']:5.2f}) {r['status']:18s} {r['ref']:6.3f} {r['total'] / r['ref']:9.0f}")
     if "standard" not in sizes:
-        n, nv, det, _, _, target = SIZES["standard"]
-        prob = f"{n}^3, {nv} views, {det[0]}x{det[1]}"
+        prob = _describe("standard")
         print(f"{'standard':9s} {prob:30s} not run (--standard)")
     print("s/pass: mean time of one Jacobian pass (reduce_views) at the finest scale; peak RSS: ru_maxrss of the calibrating")
     print("process; err: RMS reprojection error vs the true geometry, gauge-free (nominal in brackets); total/ref: total")
