@@ -365,7 +365,6 @@ def _scatter_ray(buf, base, w, sa, sb, sc, rb, rc, ilo, ihi, flo, fhi, sta, stb,
         ib, wb, ic, wc = _sample_cells(sb, sc, rb, rc, sa, i, nb, nc, False)
         _scatter_checked(buf, i * sta - base, ib, wb, ic, wc, w, stb, stc, nb, nc, own_lo, own_hi)
     nb2 = nb - 2
-    nc2 = nc - 2
     pb = sb + (flo - sa) * rb
     pc = sc + (flo - sa) * rc
     # unsigned offsets, as in the forward: o may be "negative" (flo * sta <
