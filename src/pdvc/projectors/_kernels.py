@@ -58,7 +58,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange, uint64
+from numba import float32, njit, prange, uint64
 
 # Layout of the per-view geometry table (index coordinates, xyz order):
 #  0:3  source (cone) or ray direction (parallel)
@@ -374,18 +374,25 @@ def _scatter_ray(buf, base, w, sa, sb, sc, rb, rc, ilo, ihi, flo, fhi, sta, stb,
     ustc = uint64(stc)
     usta = uint64(sta)
     o = uint64(max(flo, 0) * sta - base)
+    # the weights in float32, the precision of the volume: float64 weights
+    # cost a conversion each way on every read-modify-write (8 a sample),
+    # float32 ones two a sample; the positions stay float64, as in the
+    # forward (measured on 256³ x 360 views, 2 threads: 1.60 -> 1.44x the
+    # forward's time)
+    w32 = float32(w)
     for i in range(flo, fhi + 1):
         ib = min(int(pb), nb2)
         ic = min(max(int(pc), clo), chi)
-        wb = pb - ib
-        wc = pc - ic
         oo = o + uint64(ib) * ustb + uint64(ic) * ustc
-        wv = w * (1.0 - wc)
-        buf[oo] += wv * (1.0 - wb)
-        buf[oo + ustb] += wv * wb
-        wv = w * wc
-        buf[oo + ustc] += wv * (1.0 - wb)
-        buf[oo + ustb + ustc] += wv * wb
+        wb = float32(pb - ib)
+        w1 = w32 * float32(pc - ic)  # w wc
+        w0 = w32 - w1  # w (1 - wc)
+        v = w0 * wb
+        buf[oo] += w0 - v
+        buf[oo + ustb] += v
+        v = w1 * wb
+        buf[oo + ustc] += w1 - v
+        buf[oo + ustb + ustc] += v
         pb += rb
         pc += rc
         o += usta
