@@ -153,16 +153,47 @@ def test_projections_are_not_modified():
 
 
 # -- errors -----------------------------------------------------------------------
+@pytest.mark.parametrize("n_views", [90, 60])
+@pytest.mark.parametrize("off_axis", [(0.3, 0.1, 0.0), (-0.2, 0.25, 0.0)])
+def test_parallel_180_degree_scan_without_end_point(n_views, off_axis):
+    """n views over [0°, 180°) (no end point, the usual synchrotron list): no view is opposite another.
+
+    View 0 pairs with the last view (one step from opposite) and the one
+    before (two steps), view 1 with the last (two steps). A sample off the
+    axis turns between them, which biases each pair (0.17-0.5 px here at
+    one step); the line through the pairs' offsets, taken at zero mismatch,
+    removes it.
+    """
+    angles = np.linspace(0, np.pi, n_views, endpoint=False)
+    geom = _parallel(angles)
+    rv, t = offset_poses(geom, 5.0)
+    t = t + np.asarray(off_axis)  # a constant sample-frame translation: the sample orbits the axis 20-25 px away
+    p = project_analytic(shepp_logan_3d(0.45), geom.apply_poses(rv, t), supersampling=2)
+    est = estimate_axis_offset(p, geom)
+    assert est.pairs.tolist() == [[0, n_views - 2], [0, n_views - 1], [1, n_views - 1]]
+    assert est.offset_px == pytest.approx(5.0, abs=0.02)
+    # the nearest pair alone is biased by the sample's turn
+    nearest = estimate_axis_offset(p, geom, max_mismatch=1.01 * np.pi / n_views)
+    assert nearest.n_pairs == 1 and abs(nearest.offset_px - 5.0) > 0.15
+
+
 def test_no_opposite_pairs():
-    angles = np.deg2rad(np.arange(180.0))  # 0..179°: no 180° partner for any view
+    angles = np.deg2rad(np.arange(90.0))  # 0..89°: no view within 2.5 steps of another's opposite
     geom = _parallel(angles, rows=2)
     with pytest.raises(InitError, match="θ\\+180°") as info:
-        estimate_axis_offset(np.zeros((180, 2, N_COLS), np.float32), geom)
+        estimate_axis_offset(np.zeros((90, 2, N_COLS), np.float32), geom)
     assert isinstance(info.value, PdvcError) and isinstance(info.value, ValueError)
-    # a looser pairing tolerance accepts the 1° mismatch
+    # a 180° scan without its end point but with a tolerance given: the nearest pair only, no extrapolation
+    angles = np.deg2rad(np.arange(180.0))
+    geom = _parallel(angles, rows=2)
+    with pytest.raises(InitError, match="θ\\+180°"):
+        estimate_axis_offset(np.zeros((180, 2, N_COLS), np.float32), geom, max_mismatch=np.deg2rad(0.5))
     p = _scan(geom, 5.0)
     est = estimate_axis_offset(p, geom, max_mismatch=np.deg2rad(1.01))
     assert est.n_pairs == 1 and est.offset_px == pytest.approx(5.0, abs=0.5)
+    # without a tolerance: extrapolated from the pairs one and two steps from opposite
+    est = estimate_axis_offset(p, geom)
+    assert est.n_pairs == 3 and est.offset_px == pytest.approx(5.0, abs=0.2)
 
 
 def test_unreliable_estimate_refused():

@@ -141,6 +141,18 @@ def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.n
     return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2), step
 
 
+def _near_opposite_pairs(theta: np.ndarray, step: float, reach: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(i, j)``, ``i < j``, with ``θ_j`` within ``reach`` steps of ``θ_i + π``, and their mismatches.
+
+    The mismatch ``δ = θ_j − θ_i − π`` (wrapped to (−π, π]) is signed: a
+    180° scan without its end point pairs view 0 with the last view at
+    ``δ = −step`` and with the one before at ``−2 step``.
+    """
+    d = (theta[None, :] - theta[:, None] - np.pi + np.pi) % (2 * np.pi) - np.pi
+    i, j = np.nonzero(np.triu(np.abs(d) <= reach * step * (1 + 1e-9), k=1))
+    return np.stack([i, j], axis=1).astype(np.int64).reshape(-1, 2), d[i, j]
+
+
 def _prepare(img: np.ndarray) -> np.ndarray:
     """Rows minus the straight line through their end values: zero at both ends, so zero padding adds no step."""
     x = np.linspace(0.0, 1.0, img.shape[1])
@@ -226,6 +238,13 @@ def estimate_axis_offset(
 
     This works for 180° scans that include the end point (one pair, 0 and
     180°), 360° scans (one pair per two views) and irregular angle lists.
+    A 180° scan **without** its end point (``n`` views over ``[0, π)``, the
+    usual synchrotron list) has no opposite view within half a step: then
+    (``max_mismatch`` unset) the views up to 2.5 steps from opposite are
+    paired (view 0 with the last views), each pair's offset is biased by
+    how far the sample turned between them (its projected motion over the
+    mismatch ``δ``), and the offset is the straight line through the
+    pairs' offsets against ``δ``, taken at ``δ = 0``.
     In **cone beam**, the opposite view is only approximately a mirror
     image (conjugate rays lie at ``θ + π + 2γ``, and depth changes the
     magnification), so by default only the central quarter of the rows (the
@@ -297,13 +316,18 @@ def estimate_axis_offset(
 
     theta = _scan_angles(geom)
     pairs, step = _opposite_pairs(theta, max_mismatch)
+    mismatch = None  # extrapolated to 0 when the pairs are not opposite
+    if pairs.shape[0] == 0 and max_mismatch is None and step > 0:
+        near, delta = _near_opposite_pairs(theta, step)
+        if np.unique(np.round(delta / step)).size >= 2:
+            pairs, mismatch = near, delta
     if pairs.shape[0] == 0:
         span = np.degrees(np.ptp(np.unwrap(np.sort(theta))))
         tol = np.degrees(0.5 * step if max_mismatch is None else max_mismatch)
         raise InitError(
             f"no pair of opposite views: expected for some view at θ another at θ+180° within {tol:.3g}° "
-            f"(half the angular step), but the {geom.n_views} views span {span:.4g}° "
-            "(a 180° scan must include its end point, e.g. 181 views over 0..180°; or pass max_mismatch)"
+            f"(half the angular step), or views at two different mismatches within 2.5 steps to extrapolate "
+            f"from, but the {geom.n_views} views span {span:.4g}° (or pass max_mismatch)"
         )
 
     offsets, nccs = [], []
@@ -323,8 +347,22 @@ def estimate_axis_offset(
         )
     if not np.all(good):
         log.warning("%d of %d pairs peak at the search limit and are left out", np.count_nonzero(~good), good.size)
-    med = float(np.median(offsets[good]))
-    spread = float(_MAD_TO_SIGMA * np.median(np.abs(offsets[good] - med))) if np.count_nonzero(good) > 1 else 0.0
+    if mismatch is None:
+        med = float(np.median(offsets[good]))
+        resid = offsets[good] - med
+    else:
+        # offset_ij = offset + slope * δ_ij near the end points: the line at δ = 0
+        dg = mismatch[good]
+        if np.unique(np.round(dg / step)).size < 2:
+            raise InitError("no reliable pair: the pairs left after the search limit all have the same mismatch, "
+                            "nothing to extrapolate to 180° from")
+        slope, med = np.polyfit(dg, offsets[good], 1)
+        med = float(med)
+        resid = offsets[good] - (med + slope * dg)
+        log.info("no opposite view within half a step: axis offset extrapolated to 180° from %d pairs %.3g-%.3g "
+                 "steps from opposite (slope %.3g px per step)", dg.size, np.abs(dg).min() / step,
+                 np.abs(dg).max() / step, slope * step)
+    spread = float(_MAD_TO_SIGMA * np.median(np.abs(resid))) if resid.size > 1 else 0.0
     med_ncc = float(np.median(nccs))
     if not np.isfinite(med_ncc) or med_ncc < min_correlation:
         raise InitError(
