@@ -45,14 +45,24 @@ class Scan:
     geometry_unbinned: Optional[VectorGeometry] = None  # the detector before [preprocess] bin (None when bin = 1)
 
 
-def calibration_options(cal, det_shape, vol_shape=None) -> dict:
-    """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape`` and ``vol_shape``."""
-    from .calibration import Stage, resolve_stages
+def calibration_options(cal, det_shape, vol_shape=None, geom=None) -> dict:
+    """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape`` and ``vol_shape``.
+
+    With ``geom``, a short parallel scan without a ``reconstruct`` set
+    reconstructs by ``nonneg_ls``, as :func:`pdvc.calibrate` decides
+    (:func:`pdvc.calibration.short_scan_reconstruction`).
+    """
+    from .calibration import Stage, resolve_stages, short_scan_reconstruction
 
     if cal.stage is not None:
         stages = tuple(Stage.from_dict(d) for d in cal.stage)
     else:
-        stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **cal.recipe_parameters())
+        params = cal.recipe_parameters()
+        if geom is not None:
+            params, note = short_scan_reconstruction(geom, **params)
+            if note:
+                log.info(note)
+        stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **params)
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
         truncation=cal.truncation, zingers=cal.zingers,
@@ -285,7 +295,7 @@ def load_scan(config, *, out_dir=None, memory_budget: float | None = None, chunk
     frac = check_coverage(geom, vol_geom)
     if frac < 0.6:  # a square grid as wide as the detector gives ~0.71: its corners leave the field, as in any scan
         notes.append(f"warning: only {100 * frac:.0f}% of the volume box projects onto the detector at the worst view")
-    cal_opts = calibration_options(cfg.calibration, geom.det_shape, vol_geom.shape)
+    cal_opts = calibration_options(cfg.calibration, geom.det_shape, vol_geom.shape, geom)
     if gamma2_counts is not None:
         cal_opts["noise_variance"] = gamma2_counts
         notes.append(f"noise variance from the counts (Poisson, gain 1): {gamma2_counts:.3g}")

@@ -24,7 +24,7 @@ from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_p
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._truncation import Truncation, detect_truncation, truncation_weights
-from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages
+from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages, short_scan_reconstruction
 from ._select import MIN_MODEL_GAIN, MODELS, ModelChoice, compare_models
 from ._stages import (
     GUARDS,
@@ -54,6 +54,7 @@ __all__ = [
     "stages_to_dicts",
     "auto_scales",
     "resolve_stages",
+    "short_scan_reconstruction",
     "run_stages",
     "jolt_views",
     "jolt_stage",

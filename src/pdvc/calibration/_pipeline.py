@@ -163,6 +163,34 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
         raise CalibrationError(str(exc)) from None
 
 
+# a parallel scan where fewer views than this have an opposite view is a short scan (docs/method.md §6)
+SHORT_SCAN_OPPOSITE_FRACTION = 0.5
+
+
+def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tuple[dict, Optional[str]]:
+    """The model overrides with ``reconstruct = "nonneg_ls"`` for a short parallel scan, and why (None: unchanged).
+
+    A parallel scan over 180° (fewer than half of its views with a view
+    opposite) determines the axis offset only weakly: a constant shift of
+    every projection is, over half a turn, mostly a translation of the
+    sample (the gauge), so the FBP's model error biases the offset. The
+    consistent reconstruction removes that bias (``docs/method.md`` §6).
+    Only when neither ``stages`` nor ``reconstruct`` is given.
+    """
+    if stages is not None or model.get("reconstruct") is not None or geom.kind != "parallel":
+        return model, None
+    from ._init import _opposite_pairs, _scan_angles
+
+    pairs, _ = _opposite_pairs(_scan_angles(geom), None)
+    frac = 2 * pairs.shape[0] / geom.n_views
+    if frac >= SHORT_SCAN_OPPOSITE_FRACTION:
+        return model, None
+    note = (f"a short parallel scan ({100 * frac:.0f} % of the views have an opposite view): the axis offset is "
+            "weakly determined and the FBP's model error would bias it; the calibration reconstructs by non-negative "
+            "least squares (slower; reconstruct = \"fdk\" for the FBP)")
+    return dict(model, reconstruct="nonneg_ls"), note
+
+
 def _validate(projections, geom, vol_geom, weights):
     if not isinstance(geom, VectorGeometry):
         raise CalibrationError(f"geom must be a VectorGeometry, got {type(geom).__name__}")
@@ -285,6 +313,9 @@ def calibrate(
         raise CalibrationError(f"truncation must be 'auto', 'on' or 'off', got {truncation!r}")
     if zingers not in ("auto", "off"):
         raise CalibrationError(f"zingers must be 'auto' or 'off', got {zingers!r}")
+    model, short_scan = short_scan_reconstruction(geom, stages, **model)
+    if short_scan:
+        log.info(short_scan)
     stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
@@ -314,6 +345,7 @@ def calibrate(
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
         background=_background_text(drv), zingers=found_zingers.describe() if found_zingers is not None else "not checked",
         model=drv.model_choice.text() if drv.model_choice is not None else "as given (no candidates compared)",
+        reconstruction=short_scan or "as the stages set it",
     )
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])

@@ -97,7 +97,8 @@ that type needs) are required; everything else has the default shown.
     # method = "full"           # "full" | "pgd"
     # frame = "sample"          # "sample" | "lab"
     # fixed = ["rz"]            # parameters held at zero, among "tx","ty","tz","rx","ry","rz"
-    # reconstruct = "fdk"       # correlation volume: "fdk" (FBP in parallel beam) | "nonneg_ls" | "cgls"
+    # reconstruct = "fdk"       # correlation volume: "fdk" (FBP in parallel beam) | "nonneg_ls" | "cgls";
+                                #   unset on a parallel scan over 180°: "nonneg_ls" (the offset is weakly determined)
     # guards = ["consistency"]  # "consistency" (stop if a fresh reconstruction fits worse) | "entropy"
     # max_outer = 10            # rounds per scale, warm-up included (precession, jolts: 8)
     # tol_px = 0.01             # a round moving sample points by less ends the stage (full-resolution px)

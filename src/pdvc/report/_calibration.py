@@ -100,6 +100,8 @@ def build_report(out, result, *, projections, angles, params_lab):
     options = getattr(result, "options", None) or {}
     if "model" in options:
         summary["motion model"] = options["model"]
+    if options.get("reconstruction", "").startswith("a short"):
+        summary["reconstruction"] = options["reconstruction"]
     if "background" in options:
         summary["background per view"] = options["background"]
     if "zingers" in options:
