@@ -45,12 +45,13 @@ class Scan:
     geometry_unbinned: Optional[VectorGeometry] = None  # the detector before [preprocess] bin (None when bin = 1)
 
 
-def calibration_options(cal, det_shape, vol_shape=None, geom=None) -> dict:
+def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -> dict:
     """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape`` and ``vol_shape``.
 
     With ``geom``, a short parallel scan without a ``reconstruct`` set
     reconstructs by ``nonneg_ls``, as :func:`pdvc.calibrate` decides
-    (:func:`pdvc.calibration.short_scan_reconstruction`).
+    (:func:`pdvc.calibration.short_scan_reconstruction`); why goes to
+    ``notes`` (a list), or to the log.
     """
     from .calibration import Stage, resolve_stages, short_scan_reconstruction
 
@@ -61,7 +62,7 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None) -> dict:
         if geom is not None:
             params, note = short_scan_reconstruction(geom, **params)
             if note:
-                log.info(note)
+                notes.append(note) if notes is not None else log.info(note)
         stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **params)
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
@@ -295,7 +296,7 @@ def load_scan(config, *, out_dir=None, memory_budget: float | None = None, chunk
     frac = check_coverage(geom, vol_geom)
     if frac < 0.6:  # a square grid as wide as the detector gives ~0.71: its corners leave the field, as in any scan
         notes.append(f"warning: only {100 * frac:.0f}% of the volume box projects onto the detector at the worst view")
-    cal_opts = calibration_options(cfg.calibration, geom.det_shape, vol_geom.shape, geom)
+    cal_opts = calibration_options(cfg.calibration, geom.det_shape, vol_geom.shape, geom, notes)
     if gamma2_counts is not None:
         cal_opts["noise_variance"] = gamma2_counts
         notes.append(f"noise variance from the counts (Poisson, gain 1): {gamma2_counts:.3g}")
