@@ -54,6 +54,7 @@ never be.
     python benchmarks/bench_accuracy.py --scales                # 8 held-out cases, n=92: detectors of 110x129 px, two scales
     python benchmarks/bench_accuracy.py                         # full: 48 held-out cases, n=64, 90..720 views
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
+    python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ import platform
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 FAMILIES = ("rod", "foam", "granular")
 MOTIONS = ("offset", "tilt_det", "tilt_beam", "prec1", "prec2", "drift", "jolts", "combo")
@@ -84,6 +85,8 @@ SIZES = {
 OPTIONS: dict = {}
 # --air: an air level added to every case's line integrals (0: none); --zingers: a fraction of zinger pixels
 AIR = {"drift": 0.0, "zingers": 0.0}
+# --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10)
+SCAN = {"half_turn": False}
 
 
 def add_zingers(p, fraction: float, seed: int):
@@ -302,9 +305,11 @@ def run_case(c: Case) -> dict:
     from pdvc.geometry import fix_gauge, reprojection_error, sample_points
     from pdvc.simulate import simulate_scan
 
+    if SCAN["half_turn"]:
+        c = replace(c, cone_deg=0.0)
     row = dict(seed=c.seed, split=c.split, family=c.family, motion=c.motion, n=c.n, i0=c.i0, cone_deg=c.cone_deg,
                n_views=c.n_views, params=str(c.params))
-    angles = np.linspace(0.0, 2 * np.pi, c.n_views, endpoint=False)
+    angles = np.linspace(0.0, np.pi if SCAN["half_turn"] else 2 * np.pi, c.n_views, endpoint=False)
     t0 = time.perf_counter()
     geom = geometry(c, angles)
     rv, t = true_poses(c, angles)
@@ -392,7 +397,8 @@ def header(args) -> list:
         f"suite: size {args.size} (n={SIZES[args.size]['n']}, views {SIZES[args.size]['views']}), split {args.split}, "
         f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
-        + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else ""),
+        + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
+        + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else ""),
     ]
 
 
@@ -471,11 +477,14 @@ def main(argv=None) -> int:
     ap.add_argument("--zingers", type=float, default=0.0, metavar="FRACTION",
                     help="zingers: this fraction of the pixels of every view, at random, with line integrals lowered "
                          "by 0.5 to 3 (default 0: none)")
+    ap.add_argument("--half-turn", action="store_true",
+                    help="every case a parallel scan over [0, 180 deg) instead of a full turn (cone angle 0)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)
     AIR["drift"] = float(args.air)
     AIR["zingers"] = float(args.zingers)
+    SCAN["half_turn"] = bool(args.half_turn)
     for item in args.option:
         key, _, value = item.partition("=")
         OPTIONS[key.strip()] = _toml_value(value)
