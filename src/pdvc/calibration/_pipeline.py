@@ -263,7 +263,10 @@ def calibrate(
         Recipe parameters: coarse-to-fine scales (``"auto"``: from the
         detector), rounds per scale, warm-up rounds, and fields of the model
         stage (``basis``, ``frame``, ``fixed``, ``method``, ``reconstruct``,
-        ``oversample``, ``tol_px``, ``max_iter``, ...; :class:`Stage`).
+        ``oversample``, ``tol_px``, ``max_iter``, ...; :class:`Stage`). A
+        parallel scan over half a turn without ``reconstruct`` (nor
+        ``stages``) reconstructs by ``nonneg_ls``
+        (:func:`short_scan_reconstruction`).
     init : {"auto", "axis", "none"}
         Coarse initialisation: the axis offset from opposite views by
         cross-correlation (needs views ~180° apart). "auto" uses it when
