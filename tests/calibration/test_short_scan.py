@@ -73,3 +73,21 @@ def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstr
     assert auto.options["reconstruction"].startswith("a short parallel scan")
     assert auto.success
     assert error(auto) < 0.1 and error(auto) < 0.6 * error(fbp)
+
+
+@pytest.mark.parametrize("reconstruct", [None, "fdk"])
+def test_the_config_path_applies_the_same_rule(tmp_path, reconstruct):
+    from pdvc._inputs import calibration_options
+    from pdvc.io import load_config
+
+    cal = {} if reconstruct is None else {"reconstruct": reconstruct}
+    cfg = load_config({"data": {"path": "s"}, "geometry": {"type": "parallel", "pixel": 1}, "calibration": cal},
+                      base_dir=tmp_path)
+    geom = _par(np.linspace(0, np.pi, 91, endpoint=False))
+    notes = []
+    opts = calibration_options(cfg.calibration, geom.det_shape, (4, 32, 32), geom, notes)
+    models = [s.reconstruct for s in opts["stages"] if s.name == "model"]
+    if reconstruct is None:
+        assert models and set(models) == {"nonneg_ls"} and len(notes) == 1 and "short parallel scan" in notes[0]
+    else:
+        assert set(models) == {"fdk"} and notes == []

@@ -320,6 +320,8 @@ def calibrate(
     if short_scan:
         log.info(short_scan)
     stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+    if short_scan is None and stages is not None and any(s.reconstruct == "nonneg_ls" for s in stage_list):
+        short_scan = short_scan_reconstruction(geom)[1]  # stages resolved from a config by the same rule: say why
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings)
