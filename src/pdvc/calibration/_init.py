@@ -122,6 +122,11 @@ def _magnification(geom: VectorGeometry) -> np.ndarray:
     return sdd / sod
 
 
+def _mismatch(theta: np.ndarray, i: int) -> np.ndarray:
+    """``θ_j − θ_i − π`` for every view ``j``, wrapped to [−π, π): how far each view is from opposite view ``i``."""
+    return (theta - theta[i]) % (2 * np.pi) - np.pi
+
+
 def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.ndarray, float]:
     """Unordered pairs ``(i, j)``, ``i < j``, with ``θ_j`` nearest to ``θ_i + π`` within the tolerance."""
     n = theta.size
@@ -133,7 +138,7 @@ def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.n
     tol *= 1 + 1e-9  # a partner exactly half a step away counts
     pairs = set()
     for i in range(n):
-        d = np.abs((theta - theta[i] - np.pi + np.pi) % (2 * np.pi) - np.pi)
+        d = np.abs(_mismatch(theta, i))
         d[i] = np.inf
         j = int(np.argmin(d))
         if d[j] <= tol:
@@ -144,13 +149,18 @@ def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.n
 def _near_opposite_pairs(theta: np.ndarray, step: float, reach: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
     """Pairs ``(i, j)``, ``i < j``, with ``θ_j`` within ``reach`` steps of ``θ_i + π``, and their mismatches.
 
-    The mismatch ``δ = θ_j − θ_i − π`` (wrapped to (−π, π]) is signed: a
+    The mismatch ``δ = θ_j − θ_i − π`` (:func:`_mismatch`) is signed: a
     180° scan without its end point pairs view 0 with the last view at
-    ``δ = −step`` and with the one before at ``−2 step``.
+    ``δ = −step`` and with the one before at ``−2 step``. One view at a
+    time (memory in the number of views, not its square).
     """
-    d = (theta[None, :] - theta[:, None] - np.pi + np.pi) % (2 * np.pi) - np.pi
-    i, j = np.nonzero(np.triu(np.abs(d) <= reach * step * (1 + 1e-9), k=1))
-    return np.stack([i, j], axis=1).astype(np.int64).reshape(-1, 2), d[i, j]
+    pairs, delta = [], []
+    for i in range(theta.size - 1):
+        d = _mismatch(theta, i)[i + 1:]
+        for j in np.nonzero(np.abs(d) <= reach * step * (1 + 1e-9))[0]:
+            pairs.append((i, i + 1 + j))
+            delta.append(d[j])
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2), np.array(delta, dtype=np.float64)
 
 
 def _prepare(img: np.ndarray) -> np.ndarray:
