@@ -6,7 +6,7 @@ import pytest
 import pdvc
 from pdvc.errors import PdvcError
 from pdvc.recon import fdk, nonneg_ls, nonneg_ls_lipschitz
-from pdvc.recon._iterative import _along, spline_upsampling_matrix
+from pdvc.recon._iterative import _along, _banded, spline_upsampling_matrix
 
 from ..conftest import gaussian_blob_volume
 
@@ -32,11 +32,26 @@ def test_spline_upsampling_is_applied_with_its_exact_transpose():
     y = rng.standard_normal((8, 10, 12)).astype(np.float32)
     uc, uty = c, y
     for ax, M in enumerate(mats):
-        uc = _along(M, uc, ax)
-        uty = _along(M.T, uty, ax)
+        uc = _along(_banded(M), uc, ax)
+        uty = _along(_banded(M.T), uty, ax)
     assert uc.shape == y.shape and uty.shape == c.shape
     lhs, rhs = float(np.vdot(uc, y)), float(np.vdot(c, uty))
     assert abs(lhs - rhs) <= 1e-5 * abs(lhs)
+
+
+@pytest.mark.parametrize("factor", [1, 2, 3])
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_banded_application_equals_the_dense_matrix_product(axis, factor):
+    # the banded kernels against numpy's dense product, M and its transpose, every axis
+    rng = np.random.default_rng(axis + 10 * factor)
+    shape = [5, 6, 7]
+    M = spline_upsampling_matrix(shape[axis], factor)
+    for mat in (M, M.T):
+        x = rng.standard_normal(shape[:axis] + [mat.shape[1]] + shape[axis + 1:]).astype(np.float32)
+        want = np.moveaxis(np.tensordot(mat.astype(np.float64), x.astype(np.float64), axes=(1, axis)), 0, axis)
+        got = _along(_banded(mat), x, axis)
+        assert got.dtype == np.float32 and got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
 
 
 @pytest.fixture(scope="module")

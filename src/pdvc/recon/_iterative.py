@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from typing import Callable, Optional
 
+import numba
 import numpy as np
 
 from ..errors import PdvcError, ShapeError
@@ -110,8 +111,74 @@ def spline_upsampling_matrix(n: int, factor: int) -> np.ndarray:
     return _bspline3(xc[:, None] - np.arange(n)[None, :]).astype(np.float32)
 
 
-def _along(M: np.ndarray, x: np.ndarray, axis: int) -> np.ndarray:
-    return np.moveaxis(np.tensordot(M, x, axes=(1, axis)), 0, axis)
+def _banded(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A matrix of few non-zeros per row as (first column, weights): ``M[j, s_j + k] = W[j, k]``.
+
+    Every row keeps the same number ``K`` of columns (the widest row's
+    span; zero-padded, shifted left at the end so that ``s_j + K <= n``).
+    """
+    M = np.asarray(M, np.float32)
+    m, n = M.shape
+    nz = M != 0
+    first = np.where(nz.any(axis=1), nz.argmax(axis=1), 0)
+    last = np.where(nz.any(axis=1), n - 1 - nz[:, ::-1].argmax(axis=1), 0)
+    K = int(max(1, (last - first).max() + 1))
+    start = np.minimum(first, n - K).astype(np.int64)
+    W = np.stack([M[np.arange(m), start + k] for k in range(K)], axis=1).astype(np.float32)
+    return start, np.ascontiguousarray(W)
+
+
+@numba.njit(parallel=True, cache=True)
+def _banded0(x, start, W, out):  # pragma: no cover - compiled
+    for j in numba.prange(out.shape[0]):
+        out[j] = 0.0
+        for k in range(W.shape[1]):
+            w = W[j, k]
+            if w != 0.0:
+                xi = x[start[j] + k]
+                for a in range(out.shape[1]):
+                    for b in range(out.shape[2]):
+                        out[j, a, b] += w * xi[a, b]
+
+
+@numba.njit(parallel=True, cache=True)
+def _banded1(x, start, W, out):  # pragma: no cover - compiled
+    for a in numba.prange(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[a, j] = 0.0
+            for k in range(W.shape[1]):
+                w = W[j, k]
+                if w != 0.0:
+                    i = start[j] + k
+                    for b in range(out.shape[2]):
+                        out[a, j, b] += w * x[a, i, b]
+
+
+@numba.njit(parallel=True, cache=True)
+def _banded2(x, start, W, out):  # pragma: no cover - compiled
+    for a in numba.prange(out.shape[0]):
+        for b in range(out.shape[1]):
+            for j in range(out.shape[2]):
+                acc = np.float32(0.0)
+                for k in range(W.shape[1]):
+                    acc += W[j, k] * x[a, b, start[j] + k]
+                out[a, b, j] = acc
+
+
+def _along(band: tuple[np.ndarray, np.ndarray], x: np.ndarray, axis: int) -> np.ndarray:
+    """``M`` (given as :func:`_banded` of it) applied along ``axis`` of the 3-D ``x``, float32.
+
+    One pass per axis in the volume's memory order, parallel over the outer
+    axis; a dense ``tensordot`` with its two transposing copies took about a
+    quarter of each :func:`nonneg_ls` iteration on a 268 x 320 x 320 grid.
+    """
+    start, W = band
+    x = np.ascontiguousarray(x, np.float32)
+    shape = list(x.shape)
+    shape[axis] = start.shape[0]
+    out = np.empty(shape, np.float32)
+    (_banded0, _banded1, _banded2)[axis](x, start, W, out)
+    return out
 
 
 def nonneg_ls(
@@ -255,16 +322,18 @@ def _spline_operator(vol_geom: VolumeGeometry, geom: VectorGeometry, f: int, bac
     shape = tuple(n // f for n in vol_geom.shape)
     vg_c = VolumeGeometry(shape, voxel_size=tuple(s * f for s in vol_geom.voxel_size), offset=vol_geom.offset)
     mats = [spline_upsampling_matrix(n, f) for n in shape]
+    bands = [_banded(M) for M in mats]
+    bands_t = [_banded(M.T) for M in mats]
 
     def up(c):
-        for ax, M in enumerate(mats):
-            c = _along(M, c, ax)
-        return np.ascontiguousarray(c, np.float32)
+        for ax, band in enumerate(bands):
+            c = _along(band, c, ax)
+        return c
 
     def up_t(x):
-        for ax, M in enumerate(mats):
-            x = _along(M.T, x, ax)
-        return np.ascontiguousarray(x, np.float32)
+        for ax, band in enumerate(bands_t):
+            x = _along(band, x, ax)
+        return x
 
     def A(c):
         return forward(up(c), vol_geom, geom, backend=backend)
