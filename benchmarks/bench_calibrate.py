@@ -202,7 +202,8 @@ class _Probe:
         if self.live and ev == "round":  # live progress: a long size shows where it is
             print(f"    round {info.get('iteration')}: {info.get('stage')}@{info.get('scale')} {info.get('elapsed_s', 0):.1f} s, "
                   f"{info.get('n_iter')} passes, chi {info.get('chi_before', 0):.4g} -> {info.get('chi_after', 0):.4g}, "
-                  f"increment {info.get('increment_px', 0):.3f} px", flush=True)
+                  f"increment {info.get('increment_px', 0):.3f} px{' (from extrapolated poses)' if info.get('extrapolated') else ''}",
+                  flush=True)
         elif self.live and ev == "stage":
             print(f"    stage {info.get('index')}: {info.get('name')}@{info.get('scale')}", flush=True)
 

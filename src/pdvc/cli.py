@@ -62,7 +62,8 @@ class _Progress:
             self.round_times = getattr(self, "round_times", []) + [float(info.get("elapsed_s", 0.0))]
             left = max(getattr(self, "stage_rounds", 0) - int(info.get("round", 0)) - 1, 0)
             msg = (
-                f"  {info.get('stage')} round {info.get('round')}: chi {info['chi_before']:.4g} -> {info['chi_after']:.4g}, "
+                f"  {info.get('stage')} round {info.get('round')}{' (from extrapolated poses)' if info.get('extrapolated') else ''}: "
+                f"chi {info['chi_before']:.4g} -> {info['chi_after']:.4g}, "
                 f"increment {info['increment_px']:.3g} px ({self.round_times[-1]:.1f} s"
                 + (f"; at most ~{left * np.mean(self.round_times):.0f} s left in this stage)" if left else ")")
             )

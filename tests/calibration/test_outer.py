@@ -16,6 +16,7 @@ from tests.correlation.cases import make_case
 HISTORY_KEYS = {
     "iteration", "stage", "stage_index", "scale", "round", "chi_before", "chi_after", "snr_before", "snr", "entropy",
     "increment_px", "increment_max_px", "n_iter", "engine_status", "elapsed_s", "background", "offset_sigma", "model",
+    "extrapolated",
 }
 
 

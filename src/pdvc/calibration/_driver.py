@@ -38,6 +38,14 @@ from ..status import Status
 from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
 from ._stages import JOLT_BASIS, Stage, StageError
 
+# Aitken's extrapolation of creeping rounds (Stage.extrapolate; docs/method.md, "Stopping"): two rounds in a row whose
+# increments shrink by a ratio in EXTRAPOLATE_RATIO, moving the sample points in directions whose cosine is at least
+# EXTRAPOLATE_COS, are a slowly contracting fixed-point iteration along one mode; the next round starts from the limit
+# of the geometric series, at most EXTRAPOLATE_MAX steps beyond the last round's poses
+EXTRAPOLATE_RATIO = (0.5, 0.95)
+EXTRAPOLATE_COS = 0.9
+EXTRAPOLATE_MAX = 4.0
+
 __all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
            "jolt_views"]
 
@@ -291,9 +299,10 @@ class _Context:
     def gauge(self, poses: Poses) -> Poses:
         return poses.gauge_fixed(self.geom, center=self.vol_geom.offset, scale=self.fix_scale)
 
-    def increment(self, a: Poses, b: Poses) -> tuple[float, float]:
-        d = np.linalg.norm(self.geom.apply(a).project_points(self.points) - self.geom.apply(b).project_points(self.points), axis=-1)
-        return float(np.sqrt(np.mean(d**2))), float(d.max())
+    def moves(self, a: Poses, b: Poses) -> np.ndarray:
+        """Detector displacement of the sample points from poses ``a`` to ``b`` (full-resolution pixels)."""
+        return self.geom.apply(b).project_points(self.points) - self.geom.apply(a).project_points(self.points)
+
 
 
 def run_stages(
@@ -447,8 +456,12 @@ class _StageRun:
                 np.column_stack([smooth.matrix, steps]), names=list(smooth.names) + [f"step{v}" for v in at]
             )
         prev_poses, prev_inc, prev_kept = self.poses, None, None
+        prev_step = None  # the last round's move of the sample points (for the extrapolation)
+        jump = None  # (poses, correlation) of the round a jump started from, while the jump's round runs
+        may_jump = st.extrapolate and st.until == "converged" and "entropy" not in st.guards
         for r in range(first_round, st.rounds):
             self.t_round = time.perf_counter()
+            jumped, jump = jump, None
             entropy = float("nan")
             if "entropy" in st.guards:
                 entropy, rose = self._entropy_check()
@@ -463,9 +476,18 @@ class _StageRun:
                 self.extra_passes = int(res.n_iter)
                 res = self._correlate(again=True)
             chi_before = float(res.chi_history[0])
+            if jumped is not None and self.best is not None and chi_before > self.best[0]:
+                # the extrapolated poses fit the data worse than the best round: back to where the jump started
+                log.info("round %d: the extrapolated poses fit worse (chi_before %.5g > %.5g); undone, no more jumps in "
+                         "this stage", r, chi_before, self.best[0])
+                self.poses, self.kept = jumped
+                may_jump, prev_step, prev_inc = False, None, None
+                continue
             if "consistency" in st.guards:
                 if self.best is None or chi_before < self.best[0]:
-                    self.best = (chi_before, self.poses, self.kept, r, self.volume[1])
+                    # a jump's poses have no correlation of their own: a rollback to them goes to where it started
+                    self.best = ((chi_before, self.poses, self.kept, r, self.volume[1]) if jumped is None
+                                 else (chi_before, jumped[0], jumped[1], r, None))
                 elif chi_before > self.best[0] * (1 + st.diverge_tol):
                     log.info("round %d: chi_before %.5g rose above the best %.5g; keeping the best poses", r, chi_before, self.best[0])
                     # past its best point (a success) or never better than where it started: diverged, unless it
@@ -477,26 +499,52 @@ class _StageRun:
                     break
             if res.status == Status.NO_DESCENT and len(res.chi_history) == 1:
                 status = Status.FIXED_POINT  # nothing lowered chi: the poses stay as they are
+                if jumped is not None:
+                    self.kept = res  # measured at the jump's poses
                 break
             new = self.ctx.gauge(res.poses)
-            inc, inc_max = self.ctx.increment(self.poses, new)
+            step = self.ctx.moves(self.poses, new)
+            d = np.linalg.norm(step, axis=-1)
+            inc, inc_max = float(np.sqrt(np.mean(d**2))), float(d.max())
             prev_poses, prev_kept = self.poses, self.kept
             self.poses, self.kept = new, res
-            self._record(r, res, chi_before, entropy, inc, inc_max)
+            self._record(r, res, chi_before, entropy, inc, inc_max, extrapolated=jumped is not None)
             if inc < st.tol_px:
                 status = Status.CONVERGED if st.until == "converged" else Status.ROUNDS_DONE
                 break
             if st.until == "converged" and st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc:
                 log.info("round %d: increment %.3g px did not contract (previous %.3g px); stopping", r, inc, prev_inc)
                 status = Status.STOPPED_CONTRACTING
-                self.poses, self.kept = prev_poses, prev_kept
+                # the poses before this round; a jump's round goes back to where the jump started
+                self.poses, self.kept = (prev_poses, prev_kept) if jumped is None else jumped
                 break
-            prev_inc = inc
+            if may_jump and prev_step is not None and r < st.rounds - 1:
+                target, cos = self._extrapolated(prev_poses, new, inc / prev_inc, step, prev_step)
+                log.debug("round %d: increments %.3g -> %.3g px, cosine %.3f between the steps", r, prev_inc, inc, cos)
+                if target is not None:
+                    log.info("round %d: increments %.3g -> %.3g px along one direction (cosine %.3f); the next round starts "
+                             "from their extrapolated limit", r, prev_inc, inc, cos)
+                    jump, self.poses = (self.poses, self.kept), target
+                    # the jump's round must contract on this round's increment (the stall rule), and starts a new series
+                    prev_step, prev_inc = None, inc
+                    continue
+            prev_step, prev_inc = step, inc
         gv = next((v for v in self.guard_volumes if v[0] is self.poses), None)
         made = [self.volume] + ([(self.best[1], self.best[4])] if self.best is not None else [])
         self.volume_at_poses = next((v for q, v in made if q is self.poses), None) if self.volume is not None else None
         self.volume = None
         return self.poses, status, self.kept, gv
+
+    def _extrapolated(self, before: Poses, after: Poses, ratio: float, step, prev_step) -> tuple[Optional[Poses], float]:
+        """Aitken's limit of rounds that creep (``EXTRAPOLATE_RATIO``, ``EXTRAPOLATE_COS``) or None; the steps' cosine."""
+        a, b = step.ravel(), prev_step.ravel()
+        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-300)
+        if not (EXTRAPOLATE_RATIO[0] <= ratio <= EXTRAPOLATE_RATIO[1] and cos >= EXTRAPOLATE_COS):
+            return None, cos
+        lam = min(ratio / (1.0 - ratio), EXTRAPOLATE_MAX)
+        rv = after.rotvecs + lam * (after.rotvecs - before.rotvecs)
+        t = after.translations + lam * (after.translations - before.translations)
+        return self.ctx.gauge(Poses(rv, t)), cos
 
     def _entropy_check(self) -> tuple[float, bool]:
         """Entropy of the stage's analytic volume at the current poses; True if it rose past the tolerance."""
@@ -532,7 +580,7 @@ class _StageRun:
             background=stage_background(st, ctx.auto_background),
         )
 
-    def _record(self, r, res, chi_before, entropy, inc, inc_max):
+    def _record(self, r, res, chi_before, entropy, inc, inc_max, extrapolated=False):
         st = self.stage
         entry = dict(
             iteration=len(self.history), stage=st.name, stage_index=self.index, scale=st.scale, round=r, chi_before=chi_before,
@@ -540,7 +588,7 @@ class _StageRun:
             entropy=entropy, increment_px=inc, increment_max_px=inc_max, n_iter=int(res.n_iter) + self.extra_passes,
             engine_status=Status(res.status).name.lower(), elapsed_s=time.perf_counter() - self.t_round,
             background=-1 if res.background is None else int(res.background), offset_sigma=self.offset_sigma,
-            model=model_name(st),
+            model=model_name(st), extrapolated=bool(extrapolated),
         )
         choice = self.ctx.model_choice
         if st.candidates and choice is not None and not any("model_choice" in h for h in self.history):

@@ -127,6 +127,19 @@ class Stage:
         the per-view offset of the residual (a plane per view when it is
         well above the noise, none otherwise; ``docs/method.md`` §5.10); the
         later stages keep that choice.
+    extrapolate : bool
+        ``until="converged"``, no entropy guard: when two rounds in a row
+        move the sample points the same way by increments that shrink
+        slowly (ratio in ``EXTRAPOLATE_RATIO``, cosine at least
+        ``EXTRAPOLATE_COS``), start the next round from the limit of that
+        geometric series (Aitken's extrapolation, at most
+        ``EXTRAPOLATE_MAX`` steps on; constants of
+        ``pdvc.calibration._driver``). A jump whose fresh reconstruction
+        fits the data worse than the stage's best round is undone, and no
+        other is tried in the stage; the round after a jump must contract
+        (the stall rule) or the stage ends where the jump started. Off by
+        default: it reaches the loop's own fixed point sooner, which is not
+        always nearer the truth (``docs/method.md`` §5.6).
     candidates : tuple of str
         Named motion models (:data:`pdvc.calibration.MODELS`: ``"axis"``,
         ``"precession"``) compared with the stage's own before its first
@@ -164,6 +177,7 @@ class Stage:
     rcond: float = 1e-6
     background: Any = "auto"
     candidates: tuple = ()
+    extrapolate: bool = False
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -217,6 +231,9 @@ class Stage:
         if not isinstance(self.accelerate, (bool, np.bool_)):
             raise StageError(f"{w}accelerate must be true or false, got {self.accelerate!r}")
         set_("accelerate", bool(self.accelerate))
+        if not isinstance(self.extrapolate, (bool, np.bool_)):
+            raise StageError(f"{w}extrapolate must be true or false, got {self.extrapolate!r}")
+        set_("extrapolate", bool(self.extrapolate))
         if self.stall_ratio is not None and not (isinstance(self.stall_ratio, (int, float)) and self.stall_ratio > 0):
             raise StageError(f"{w}stall_ratio must be a positive number or None, got {self.stall_ratio!r}")
 

@@ -72,7 +72,8 @@ def build_report(out, result, *, projections, angles, params_lab):
         tables["rounds"] = (
             ("stage", "scale", "round", "chi before", "chi after", "increment (px)"),
             [
-                (str(h.get("stage", "")), str(h.get("scale", "")), str(h.get("round", "")), f"{h.get('chi_before', np.nan):.4g}",
+                (str(h.get("stage", "")), str(h.get("scale", "")),
+                 str(h.get("round", "")) + (" (extrapolated start)" if h.get("extrapolated") else ""), f"{h.get('chi_before', np.nan):.4g}",
                  f"{h.get('chi_after', np.nan):.4g}", f"{h.get('increment_px', np.nan):.3g}")
                 for h in result.history
             ],
