@@ -55,6 +55,7 @@ never be.
     python benchmarks/bench_accuracy.py                         # full: 48 held-out cases, n=64, 90..720 views
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
     python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
+    python benchmarks/bench_accuracy.py --quick --short-scan    # ... as cone-beam short scans (180° + the fan angle)
 """
 
 from __future__ import annotations
@@ -85,8 +86,10 @@ SIZES = {
 OPTIONS: dict = {}
 # --air: an air level added to every case's line integrals (0: none); --zingers: a fraction of zinger pixels
 AIR = {"drift": 0.0, "zingers": 0.0}
-# --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10)
-SCAN = {"half_turn": False}
+# --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
+# cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG)
+SCAN = {"half_turn": False, "short_scan": False}
+SHORT_SCAN_CONE_DEG = 6.0
 
 
 def add_zingers(p, fraction: float, seed: int):
@@ -307,9 +310,18 @@ def run_case(c: Case) -> dict:
 
     if SCAN["half_turn"]:
         c = replace(c, cone_deg=0.0)
+    if SCAN["short_scan"] and c.cone_deg == 0:
+        c = replace(c, cone_deg=SHORT_SCAN_CONE_DEG)
     row = dict(seed=c.seed, split=c.split, family=c.family, motion=c.motion, n=c.n, i0=c.i0, cone_deg=c.cone_deg,
                n_views=c.n_views, params=str(c.params))
-    angles = np.linspace(0.0, np.pi if SCAN["half_turn"] else 2 * np.pi, c.n_views, endpoint=False)
+    if SCAN["short_scan"]:
+        # the fan half-angle: half the detector's width at the axis (in voxels, as geometry() scales it) over the SOD
+        rows, cols = int(round(1.2 * c.n)), int(round(1.4 * c.n))
+        fan = float(np.arctan((cols / 2) * np.tan(np.deg2rad(c.cone_deg)) / (rows / 2)))
+        angles = np.linspace(0.0, np.pi + 2 * fan, c.n_views)
+        row["arc_deg"] = float(np.rad2deg(angles[-1]))
+    else:
+        angles = np.linspace(0.0, np.pi if SCAN["half_turn"] else 2 * np.pi, c.n_views, endpoint=False)
     t0 = time.perf_counter()
     geom = geometry(c, angles)
     rv, t = true_poses(c, angles)
@@ -398,7 +410,9 @@ def header(args) -> list:
         f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
         + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
-        + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else ""),
+        + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
+        + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
+           f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else ""),
     ]
 
 
@@ -479,12 +493,18 @@ def main(argv=None) -> int:
                          "by 0.5 to 3 (default 0: none)")
     ap.add_argument("--half-turn", action="store_true",
                     help="every case a parallel scan over [0, 180 deg) instead of a full turn (cone angle 0)")
+    ap.add_argument("--short-scan", action="store_true",
+                    help="every case a cone-beam short scan over 180 deg + the fan angle, end views included "
+                         f"(parallel cases at a {SHORT_SCAN_CONE_DEG:g} deg cone half-angle)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)
     AIR["drift"] = float(args.air)
     AIR["zingers"] = float(args.zingers)
     SCAN["half_turn"] = bool(args.half_turn)
+    SCAN["short_scan"] = bool(args.short_scan)
+    if SCAN["half_turn"] and SCAN["short_scan"]:
+        ap.error("--half-turn and --short-scan exclude each other")
     for item in args.option:
         key, _, value = item.partition("=")
         OPTIONS[key.strip()] = _toml_value(value)

@@ -48,7 +48,7 @@ class Scan:
 def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -> dict:
     """``[calibration]`` as :func:`pdvc.calibrate` options, with the stage list resolved for ``det_shape`` and ``vol_shape``.
 
-    With ``geom``, a short parallel scan without a ``reconstruct`` set
+    With ``geom``, a short scan without a ``reconstruct`` set
     reconstructs by ``nonneg_ls``, as :func:`pdvc.calibrate` decides
     (:func:`pdvc.calibration.short_scan_reconstruction`); why goes to
     ``notes`` (a list), or to the log.

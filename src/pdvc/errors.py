@@ -17,6 +17,10 @@ class GeometryError(PdvcError, ValueError):
     """An inconsistent or degenerate geometry (vectors, detector, volume)."""
 
 
+class ShortScanError(GeometryError):
+    """A cone-beam scan over less than a full turn whose arc is shorter than 180° plus the fan angle (no Parker weights)."""
+
+
 class ShapeError(PdvcError, ValueError):
     """Arrays whose shapes do not agree with each other or with a geometry."""
 

@@ -1,4 +1,4 @@
-"""Short parallel scans (180°) calibrate on the consistent reconstruction (pdvc.calibration._pipeline)."""
+"""Short scans (parallel over 180°, cone beam over 180° + fan) calibrate on the consistent reconstruction (pdvc.calibration._pipeline)."""
 
 from __future__ import annotations
 
@@ -22,14 +22,23 @@ def _par(angles):
 def test_a_180_degree_parallel_scan_reconstructs_by_nonneg_ls(angles):
     model, note = short_scan_reconstruction(_par(angles), basis="constant")
     assert model == dict(basis="constant", reconstruct="nonneg_ls")
-    assert "short parallel scan" in note and "fdk" in note
+    assert "short parallel-beam scan" in note and "FBP" in note and "fdk" in note
+
+
+def test_a_cone_beam_short_scan_reconstructs_by_nonneg_ls():
+    # 180° + the fan angle (2 atan(16 / 150) = 12.2°), end views included: 13 % of the views have an opposite one
+    angles = np.linspace(0, np.pi + 2 * np.arctan(16 / 150), 91)
+    geom = circular_cone(angles, sod=100.0, odd=50.0, det_shape=(4, 32), pixel=1.0)
+    model, note = short_scan_reconstruction(geom, basis="constant")
+    assert model == dict(basis="constant", reconstruct="nonneg_ls")
+    assert "short cone-beam scan" in note and "FDK" in note
 
 
 @pytest.mark.parametrize("geom", [
     _par(np.linspace(0, 2 * np.pi, 120, endpoint=False)),  # every view has its opposite
     _par(np.linspace(0, 1.5 * np.pi, 90, endpoint=False)),  # 270°: two thirds of the views have one
-    circular_cone(np.linspace(0, np.pi, 91, endpoint=False), sod=100.0, odd=50.0, det_shape=(4, 32), pixel=1.0),
-], ids=["360", "270", "cone-180"])
+    circular_cone(np.linspace(0, 2 * np.pi, 91, endpoint=False), sod=100.0, odd=50.0, det_shape=(4, 32), pixel=1.0),
+], ids=["360", "270", "cone-360"])
 def test_other_scans_keep_their_reconstruction(geom):
     assert short_scan_reconstruction(geom, basis="constant") == (dict(basis="constant"), None)
 
@@ -70,7 +79,7 @@ def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstr
     fbp = pdvc.calibrate(scan.projections, geom, vg, reconstruct="fdk")
     auto = pdvc.calibrate(scan.projections, geom, vg)
     assert fbp.options["reconstruction"] == "as the stages set it"
-    assert auto.options["reconstruction"].startswith("a short parallel scan")
+    assert auto.options["reconstruction"].startswith("a short parallel-beam scan")
     assert auto.success
     assert error(auto) < 0.1 and error(auto) < 0.6 * error(fbp)
 
@@ -88,6 +97,30 @@ def test_the_config_path_applies_the_same_rule(tmp_path, reconstruct):
     opts = calibration_options(cfg.calibration, geom.det_shape, (4, 32, 32), geom, notes)
     models = [s.reconstruct for s in opts["stages"] if s.name == "model"]
     if reconstruct is None:
-        assert models and set(models) == {"nonneg_ls"} and len(notes) == 1 and "short parallel scan" in notes[0]
+        assert models and set(models) == {"nonneg_ls"} and len(notes) == 1 and "short parallel-beam scan" in notes[0]
     else:
         assert set(models) == {"fdk"} and notes == []
+
+
+def test_an_arc_just_short_of_a_short_scan_loses_parker_weights_inside_a_calibration_not_the_run(caplog):
+    # 180° + fan - 3 steps: fdk refuses it (ShortScanError, a GeometryError); the calibration's reconstructions
+    # (pdvc.recon.analytic) fall back to no redundancy weights with a warning. The poses of a calibration can
+    # shorten the arc seen about the moved axis that much.
+    import pdvc
+    from pdvc.errors import GeometryError, ShortScanError
+    from pdvc.recon import analytic, fdk
+
+    fan = 2 * np.arctan(16 / 150)
+    angles = np.linspace(0, np.pi + fan - 3 * (np.pi + fan) / 90, 91)
+    geom = circular_cone(angles, sod=100.0, odd=50.0, det_shape=(8, 32), pixel=1.0)
+    vg = pdvc.VolumeGeometry((6, 20, 20))
+    p = pdvc.forward(np.ones(vg.shape, np.float32), vg, geom)
+    with pytest.raises(ShortScanError, match="short scan covers") as err:
+        fdk(p, vg, geom)
+    assert isinstance(err.value, GeometryError)
+    with caplog.at_level("WARNING", logger="pdvc"):
+        vol = analytic(p, vg, geom)
+    np.testing.assert_array_equal(vol, fdk(p, vg, geom, short_scan=False))
+    assert any("short_scan=False" in r.getMessage() for r in caplog.records)
+    with pytest.raises(ShortScanError):
+        analytic(p, vg, geom, short_scan=True)  # asked for explicitly: refused, not replaced

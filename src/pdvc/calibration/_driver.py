@@ -33,7 +33,7 @@ from ..correlation import (
 )
 from ..correlation._background import auto_background
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
-from ..recon import cgls, fbp, fdk, nonneg_ls, nonneg_ls_lipschitz, refined_grid, spline_upsample
+from ..recon import analytic, cgls, nonneg_ls, nonneg_ls_lipschitz, refined_grid, spline_upsample
 from ..status import Status
 from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
 from ._stages import JOLT_BASIS, Stage, StageError
@@ -171,8 +171,9 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
 
 
 def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) -> np.ndarray:
-    """FDK (cone beam) or FBP (parallel beam): the analytic reconstruction of the calibration."""
-    return (fdk if geom.kind == "cone" else fbp)(projections, vol_geom, geom, **kw)
+    """FDK (cone beam) or FBP (parallel beam): the analytic reconstruction of the calibration (:func:`pdvc.recon.analytic`:
+    a cone-beam short scan whose arc the poses shorten below 180° + the fan angle loses its Parker weights, not the run)."""
+    return analytic(projections, vol_geom, geom, **kw)
 
 
 def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, stage: Stage, weights=None,

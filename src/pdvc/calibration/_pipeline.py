@@ -163,21 +163,23 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
         raise CalibrationError(str(exc)) from None
 
 
-# a parallel scan where fewer views than this have an opposite view is a short scan (docs/method.md §6)
+# a scan where fewer views than this have an opposite view is a short scan (docs/method.md §6)
 SHORT_SCAN_OPPOSITE_FRACTION = 0.5
 
 
 def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tuple[dict, Optional[str]]:
-    """The model overrides with ``reconstruct = "nonneg_ls"`` for a short parallel scan, and why (None: unchanged).
+    """The model overrides with ``reconstruct = "nonneg_ls"`` for a short scan, and why (None: unchanged).
 
     A parallel scan over 180° (fewer than half of its views with a view
     opposite) determines the axis offset only weakly: a constant shift of
     every projection is, over half a turn, mostly a translation of the
     sample (the gauge), so the FBP's model error biases the offset. The
     consistent reconstruction removes that bias (``docs/method.md`` §6).
-    Only when neither ``stages`` nor ``reconstruct`` is given.
+    A cone-beam short scan (180° plus the fan angle) is in the same case,
+    and its FDK's Parker weights add their own model error. Only when
+    neither ``stages`` nor ``reconstruct`` is given.
     """
-    if stages is not None or model.get("reconstruct") is not None or geom.kind != "parallel":
+    if stages is not None or model.get("reconstruct") is not None:
         return model, None
     from ._init import _opposite_pairs, _scan_angles
 
@@ -185,9 +187,10 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     frac = 2 * pairs.shape[0] / geom.n_views
     if frac >= SHORT_SCAN_OPPOSITE_FRACTION:
         return model, None
-    note = (f"a short parallel scan ({100 * frac:.0f} % of the views have an opposite view): the axis offset is "
-            "weakly determined and the FBP's model error would bias it; the calibration reconstructs by non-negative "
-            "least squares (slower; reconstruct = \"fdk\" for the FBP)")
+    analytic = "FBP" if geom.kind == "parallel" else "FDK"
+    note = (f"a short {geom.kind}-beam scan ({100 * frac:.0f} % of the views have an opposite view): the axis offset "
+            f"is weakly determined and the {analytic}'s model error would bias it; the calibration reconstructs by "
+            f"non-negative least squares (slower; reconstruct = \"fdk\" for the {analytic})")
     return dict(model, reconstruct="nonneg_ls"), note
 
 
@@ -264,9 +267,9 @@ def calibrate(
         detector), rounds per scale, warm-up rounds, and fields of the model
         stage (``basis``, ``frame``, ``fixed``, ``method``, ``reconstruct``,
         ``oversample``, ``tol_px``, ``max_iter``, ...; :class:`Stage`). A
-        parallel scan over half a turn without ``reconstruct`` (nor
-        ``stages``) reconstructs by ``nonneg_ls``
-        (:func:`short_scan_reconstruction`).
+        short scan (parallel over half a turn, cone beam over 180° plus
+        the fan angle) without ``reconstruct`` (nor ``stages``)
+        reconstructs by ``nonneg_ls`` (:func:`short_scan_reconstruction`).
     init : {"auto", "axis", "none"}
         Coarse initialisation: the axis offset from opposite views by
         cross-correlation (needs views ~180° apart). "auto" uses it when

@@ -83,7 +83,8 @@ class Stage:
         consistent on non-planar orbits); CGLS. A callable
         ``f(projections, vol_geom, geom) -> volume`` also makes the final
         volume of the stage. :func:`pdvc.calibrate` sets ``nonneg_ls`` on
-        parallel scans over half a turn when the user did not choose
+        short scans (parallel over half a turn, cone beam over 180° plus
+        the fan angle) when the user did not choose
         (:func:`pdvc.calibration.short_scan_reconstruction`).
     scale : int
         The data are coarse-grained ``scale`` x ``scale`` for this stage.

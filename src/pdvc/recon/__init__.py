@@ -13,9 +13,9 @@ and tilted) directly: the back-projection uses every view's exact
 projection matrix.
 """
 
-from ._fbp import fbp, fdk
+from ._fbp import analytic, fbp, fdk
 from ._filters import FILTERS, ramp_filter_response
 from ._iterative import cgls, nonneg_ls, nonneg_ls_lipschitz
 from ._upsample import refined_grid, spline_upsample
 
-__all__ = ["fdk", "fbp", "cgls", "nonneg_ls", "nonneg_ls_lipschitz", "refined_grid", "spline_upsample", "ramp_filter_response", "FILTERS"]
+__all__ = ["fdk", "fbp", "analytic", "cgls", "nonneg_ls", "nonneg_ls_lipschitz", "refined_grid", "spline_upsample", "ramp_filter_response", "FILTERS"]

@@ -8,7 +8,7 @@ import numba
 import numpy as np
 
 from ..compute._scheduler import current_session
-from ..errors import GeometryError, InputTypeError, ShapeError
+from ..errors import GeometryError, InputTypeError, ShapeError, ShortScanError
 from ..geometry import VectorGeometry, VolumeGeometry
 from ._filters import check_filter, filter_rows, ramp_filter_response
 from ._kernels import backproject_block
@@ -447,3 +447,23 @@ def fbp(
         arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out,
         views_per_block=int(views_per_block),
     )
+
+
+def analytic(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) -> np.ndarray:
+    """FDK (cone beam) or FBP (parallel beam), for reconstructions made inside a calibration.
+
+    A cone-beam short scan whose arc falls short of 180° plus the fan
+    angle (:class:`pdvc.errors.ShortScanError` from :func:`fdk`; a
+    calibration's poses can shorten the arc seen about the moved axis by a
+    degree or two) is reconstructed without redundancy weights, with a
+    warning, instead of stopping the run.
+    """
+    if geom.kind != "cone":
+        return fbp(projections, vol_geom, geom, **kw)
+    try:
+        return fdk(projections, vol_geom, geom, **kw)
+    except ShortScanError as exc:
+        if not (isinstance(kw.get("short_scan", "auto"), str) and kw.get("short_scan", "auto") == "auto"):
+            raise  # Parker weights asked for explicitly
+        logger.warning("%s: reconstructed with short_scan=False (no redundancy weights) instead", exc)
+        return fdk(projections, vol_geom, geom, **dict(kw, short_scan=False))

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import PdvcError, ShapeError
 from ..geometry import VectorGeometry, VolumeGeometry
 from ..projectors import backproject, forward
-from ._fbp import fbp, fdk
+from ._fbp import analytic
 
 logger = logging.getLogger(__name__)
 
@@ -270,7 +270,7 @@ def nonneg_ls(
         raise PdvcError(f"lipschitz must be a finite float >= 0 (or None), got {lipschitz!r}")
     shape, vg_c, up, A, AT = _spline_operator(vol_geom, geom, f, backend)
 
-    x0 = (fdk if geom.kind == "cone" else fbp)(b, vg_c, geom)
+    x0 = analytic(b, vg_c, geom)  # only the start: a short arc costs it its Parker weights, not the fit
     if support is True:
         sm = ndimage.gaussian_filter(x0, 1.0)
         mask = ndimage.binary_dilation(sm > 0.1 * np.percentile(sm, 99.5), iterations=2)

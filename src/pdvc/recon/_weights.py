@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GeometryError
+from ..errors import GeometryError, ShortScanError
 from ..geometry import VectorGeometry
 
 logger = logging.getLogger(__name__)
@@ -326,7 +326,7 @@ def scan_weights(geom: VectorGeometry, *, axis=None, center=None, short_scan="au
     delta = (span - np.pi) / 2
     step = span / max(geom.n_views - 1, 1)
     if delta < half_fan - step:  # one angular step of tolerance; gamma is clipped to delta
-        raise GeometryError(
+        raise ShortScanError(
             f"short scan covers {np.degrees(span):.1f} deg but a short scan needs at least 180 deg + fan angle "
             f"= {np.degrees(np.pi + 2 * half_fan):.1f} deg; pass short_scan=False to back-project the "
             "incomplete data without redundancy weights (limited-angle errors)"
