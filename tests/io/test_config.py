@@ -203,6 +203,7 @@ def test_key_of_another_geometry_type_is_named(tmp_path):
         ("calibration", "max_outer", 0, r"calibration\.max_outer must be an integer >= 1, got 0"),
         ("calibration", "oversample_by", "zoom", r"calibration\.oversample_by must be one of 'spline', 'reconstruction'"),
         ("calibration", "accelerate", "yes", r"calibration\.accelerate must be true or false, got 'yes' \(string\)"),
+        ("calibration", "extrapolate", 1, r"calibration\.extrapolate must be true or false, got 1 \(integer\)"),
         ("volume", "shape", [1, 10, 10], r"volume\.shape\[0\] must be an integer >= 2"),
         ("volume", "voxel_size", -0.1, r"volume\.voxel_size\[0\] must be positive"),
         ("output", "volume_format", "raw", r"output\.volume_format must be one of"),
@@ -388,3 +389,14 @@ def test_coverage_partial_fraction_is_the_overlap_ratio():
     g = parallel([0.0, 0.5], det_shape=(10, 20), pixel=1.0)
     frac = check_coverage(g, VolumeGeometry((20, 4, 4), 1.0))
     assert frac == pytest.approx(0.5, rel=1e-9)
+
+
+def test_extrapolate_reaches_the_model_stage(tmp_path):
+    from pdvc.calibration import recipe_stages
+
+    raw = _cfg()
+    raw["calibration"] = {"extrapolate": True}
+    cfg = load_config(raw, base_dir=tmp_path)
+    assert cfg.calibration.recipe_parameters() == {"extrapolate": True}
+    stages = recipe_stages(det_shape=(64, 64), **cfg.calibration.recipe_parameters())
+    assert [s.extrapolate for s in stages if s.name == "model"] == [True]

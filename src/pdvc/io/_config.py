@@ -104,6 +104,7 @@ that type needs) are required; everything else has the default shown.
     # tol_px = 0.01             # a round moving sample points by less ends the stage (full-resolution px)
     # max_iter = 10             # Jacobian passes per correlation (per round)
     # accelerate = true         # Anderson-accelerated Gauss-Newton steps (docs/method.md 5.6)
+    # extrapolate = false       # rounds that creep along one mode jump to their limit (Aitken; off: docs/method.md 5.6)
     # max_modes = 5             # PGD: modes at most
     # pgd_passes = 5            # PGD: alternating passes per mode
     # min_gain = 0.01           # PGD: stop when a mode lowers chi by less than this fraction
@@ -123,7 +124,7 @@ that type needs) are required; everything else has the default shown.
     # basis = "drift"           # reconstruct, scale, oversample, oversample_by, rounds, tol_px, until ("converged" |
     # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
     # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond, background,
-                                # candidates
+                                # candidates, extrapolate
     # until = "rounds"
     # rounds = 1
     # run settings
@@ -372,6 +373,7 @@ class CalibrationConfig:
     tol_px: Optional[float] = None
     max_iter: Optional[int] = None
     accelerate: Optional[bool] = None
+    extrapolate: Optional[bool] = None
     max_modes: Optional[int] = None
     pgd_passes: Optional[int] = None
     min_gain: Optional[float] = None
@@ -787,7 +789,7 @@ _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
 _RECIPE_KEYS = (
     "basis", "method", "frame", "fixed", "reconstruct", "guards", "max_outer", "tol_px", "max_iter", "max_modes",
     "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample", "oversample_by", "accelerate", "background",
-    "candidates",
+    "candidates", "extrapolate",
 )
 
 
@@ -836,9 +838,10 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         val = t.pop(key)
         if val is not None:
             kw[key] = _number(val, w + key, **rule)
-    accelerate = t.pop("accelerate")
-    if accelerate is not None:
-        kw["accelerate"] = _boolean(accelerate, w + "accelerate")
+    for key in ("accelerate", "extrapolate"):
+        val = t.pop(key)
+        if val is not None:
+            kw[key] = _boolean(val, w + key)
     background = t.pop("background")
     if background == "auto":
         kw["background"] = "auto"
