@@ -305,7 +305,6 @@ class _Context:
         return self.geom.apply(b).project_points(self.points) - self.geom.apply(a).project_points(self.points)
 
 
-
 def run_stages(
     projections,
     geom: VectorGeometry,
