@@ -7,7 +7,7 @@ import pytest
 
 from pdvc.calibration import Stage
 from pdvc.calibration import short_scan_reconstruction
-from pdvc.geometry import circular_cone, parallel
+from pdvc.geometry import VolumeGeometry, circular_cone, parallel
 
 
 def _par(angles):
@@ -50,6 +50,26 @@ def test_a_reconstruction_or_stages_given_are_kept():
     assert short_scan_reconstruction(geom, stages) == ({}, None)
 
 
+def _fdk_and_default(geom, vg, angles, *, offset, length, seed):
+    """(result, gauge-free error px) of pdvc.calibrate with reconstruct="fdk" and with the defaults, on a scan of an
+    analytic cast-iron phantom (Poisson noise, i0 2e4) whose axis is ``offset`` voxels off centre and tilted by 0.5°."""
+    import pdvc
+    from pdvc.geometry import fix_gauge, reprojection_error, sample_points
+    from pdvc.simulate import cast_iron_phantom, simulate_scan, tilted_axis_poses
+
+    n = vg.shape[2]
+    rv, t = tilted_axis_poses(angles, tilt=np.deg2rad(0.5), tilt_azimuth=0.7, offset=(offset, 0.0, 0.0))
+    scan = simulate_scan(cast_iron_phantom(0.36 * n, length, n_nodules=3 * n, seed=seed), geom, rotvecs=rv,
+                         translations=t, i0=2e4, seed=seed, supersampling=2)
+    truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
+    points = sample_points(vg, 5, fraction=0.6)
+    out = []
+    for kw in (dict(reconstruct="fdk"), {}):
+        res = pdvc.calibrate(scan.projections, geom, vg, **kw)
+        out.append((res, float(reprojection_error(res.geometry, truth, points).rms)))
+    return out
+
+
 @pytest.mark.slow
 def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstruction():
     """Known answer, no inverse crime: a cast-iron phantom projected analytically, Poisson noise.
@@ -59,29 +79,15 @@ def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstr
     offset and leaves the tilt (0.144 px measured); on the non-negative
     least-squares volume, which the default now chooses, 0.065 px.
     """
-    import pdvc
-    from pdvc.geometry import fix_gauge, reprojection_error, sample_points
-    from pdvc.simulate import cast_iron_phantom, simulate_scan, tilted_axis_poses
-
     n = 64
-    vg = pdvc.VolumeGeometry((53, n, n), voxel_size=1.0)
+    vg = VolumeGeometry((53, n, n), voxel_size=1.0)
     angles = np.linspace(0, np.pi, 60, endpoint=False)
     geom = parallel(angles, det_shape=(53, n), pixel=1.0)
-    rv, t = tilted_axis_poses(angles, tilt=np.deg2rad(0.5), tilt_azimuth=0.7, offset=(0.04 * n, 0.0, 0.0))
-    scan = simulate_scan(cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=3 * n, seed=1), geom, rotvecs=rv,
-                         translations=t, i0=2e4, seed=1, supersampling=2)
-    truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
-    points = sample_points(vg, 5, fraction=0.6)
-
-    def error(res):
-        return float(reprojection_error(res.geometry, truth, points).rms)
-
-    fbp = pdvc.calibrate(scan.projections, geom, vg, reconstruct="fdk")
-    auto = pdvc.calibrate(scan.projections, geom, vg)
-    assert fbp.options["reconstruction"] == "as the stages set it"
-    assert auto.options["reconstruction"].startswith("a short parallel-beam scan")
-    assert auto.success
-    assert error(auto) < 0.1 and error(auto) < 0.6 * error(fbp)
+    fbp, auto = _fdk_and_default(geom, vg, angles, offset=0.04 * n, length=0.8 * n, seed=1)
+    assert fbp[0].options["reconstruction"] == "as the stages set it"
+    assert auto[0].options["reconstruction"].startswith("a short parallel-beam scan")
+    assert auto[0].success
+    assert auto[1] < 0.1 and auto[1] < 0.6 * fbp[1]
 
 
 @pytest.mark.slow
@@ -94,31 +100,17 @@ def test_a_cone_beam_short_scan_calibrates_better_on_the_consistent_reconstructi
     0.081 against 0.103 px measured (nominal 1.14 px); on the held-out cases
     of ``bench_accuracy.py --short-scan`` the median halves.
     """
-    import pdvc
-    from pdvc.geometry import fix_gauge, reprojection_error, sample_points
-    from pdvc.simulate import cast_iron_phantom, simulate_scan, tilted_axis_poses
-
     n = 48
-    vg = pdvc.VolumeGeometry((40, n, n), voxel_size=1.0)
+    vg = VolumeGeometry((40, n, n), voxel_size=1.0)
     det = (48, 64)
     sod = (det[0] / 2) / np.tan(np.deg2rad(8.0))
     fan = 2 * np.arctan((det[1] / 2) / sod)  # the detector's half-width at the axis over the SOD
     angles = np.linspace(0, np.pi + fan, 90)
     geom = circular_cone(angles, sod=sod, odd=0.5 * sod, det_shape=det, pixel=1.5)
-    rv, t = tilted_axis_poses(angles, tilt=np.deg2rad(0.5), tilt_azimuth=0.7, offset=(2.0, 0.0, 0.0))
-    scan = simulate_scan(cast_iron_phantom(0.36 * n, 0.7 * n, n_nodules=3 * n, seed=2), geom, rotvecs=rv,
-                         translations=t, i0=2e4, seed=2, supersampling=2)
-    truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
-    points = sample_points(vg, 5, fraction=0.6)
-
-    def error(res):
-        return float(reprojection_error(res.geometry, truth, points).rms)
-
-    fdk = pdvc.calibrate(scan.projections, geom, vg, reconstruct="fdk")
-    auto = pdvc.calibrate(scan.projections, geom, vg)
-    assert auto.options["reconstruction"].startswith("a short cone-beam scan")
-    assert auto.success
-    assert error(auto) < 0.1 and error(auto) < 0.9 * error(fdk)
+    fdk, auto = _fdk_and_default(geom, vg, angles, offset=2.0, length=0.7 * n, seed=2)
+    assert auto[0].options["reconstruction"].startswith("a short cone-beam scan")
+    assert auto[0].success
+    assert auto[1] < 0.1 and auto[1] < 0.9 * fdk[1]
 
 
 @pytest.mark.parametrize("reconstruct", [None, "fdk"])

@@ -463,7 +463,7 @@ def analytic(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) 
     try:
         return fdk(projections, vol_geom, geom, **kw)
     except ShortScanError as exc:
-        if not (isinstance(kw.get("short_scan", "auto"), str) and kw.get("short_scan", "auto") == "auto"):
+        if kw.get("short_scan", "auto") is True:
             raise  # Parker weights asked for explicitly
         logger.warning("%s: reconstructed with short_scan=False (no redundancy weights) instead", exc)
         return fdk(projections, vol_geom, geom, **dict(kw, short_scan=False))
