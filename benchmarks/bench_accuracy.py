@@ -84,8 +84,10 @@ SIZES = {
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
 OPTIONS: dict = {}
-# --air: an air level added to every case's line integrals (0: none); --zingers: a fraction of zinger pixels
-AIR = {"drift": 0.0, "zingers": 0.0}
+# --air: an air level added to every case's line integrals (0: none); --zingers: a fraction of zinger pixels;
+# --rings: the amplitude of a fixed pattern of the detector (stripes in the sinograms, rings in the volume);
+# --phase, --hardening: what the line-integral model does not hold (edge fringes, cupping), before the noise
+AIR = {"drift": 0.0, "zingers": 0.0, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG)
 SCAN = {"half_turn": False, "short_scan": False}
@@ -100,6 +102,34 @@ def add_zingers(p, fraction: float, seed: int):
     rng = np.random.default_rng([seed, 7])
     hit = rng.random(p.shape) < fraction
     return np.where(hit, p - rng.uniform(0.5, 3.0, p.shape), p).astype(np.float32)
+
+
+def ring_pattern(shape, amplitude: float, seed: int):
+    """A flat field that is wrong by a fixed pattern, in line integrals, the same in every view: a random offset per
+    column (std ``amplitude``) and per pixel (std ``amplitude / 2``), e.g. a scintillator defect or a flat taken
+    before the beam settled (stripes in the sinograms, rings in the reconstruction)."""
+    import numpy as np
+
+    _, nr, nc = shape
+    rng = np.random.default_rng([seed, 11])
+    return (amplitude * rng.standard_normal((1, 1, nc)) + amplitude / 2 * rng.standard_normal((1, nr, nc))).astype(np.float32)
+
+
+def unmodelled(clean, phase: float, hardening: float):
+    """Exact line integrals as a real detector sees them, before the noise: residual beam hardening (each line
+    integral lowered by a fraction ``hardening`` of itself over the scan's 99.9th percentile: cupping) and, for
+    propagation-based phase contrast in the near field, edge fringes (minus ``phase`` times the Laplacian of each
+    view, in px²: the transport-of-intensity term of a single material)."""
+    import numpy as np
+    from scipy import ndimage
+
+    q = np.asarray(clean, np.float64)
+    if hardening:
+        q = q * (1.0 - hardening * q / max(float(np.percentile(q, 99.9)), 1e-12))
+    if phase:
+        lap = np.array([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]])
+        q = q - phase * ndimage.correlate(q, lap[None], mode="nearest")
+    return q.astype(np.float32)
 
 
 def air_level(shape, drift: float):
@@ -334,8 +364,14 @@ def run_case(c: Case) -> dict:
         return float(reprojection_error(g, truth, pts).rms)
 
     p = scan.projections
+    if AIR["phase"] or AIR["hardening"]:
+        from pdvc.simulate.scan import add_poisson_noise
+
+        p = add_poisson_noise(unmodelled(scan.clean, AIR["phase"], AIR["hardening"]), c.i0, seed=c.seed)
     if AIR["drift"]:
         p = p + air_level(p.shape, AIR["drift"])
+    if AIR["rings"]:
+        p = p + ring_pattern(p.shape, AIR["rings"], c.seed)
     if AIR["zingers"]:
         p = add_zingers(p, AIR["zingers"], c.seed)
     row["sim_s"] = time.perf_counter() - t0
@@ -371,6 +407,9 @@ def run_case(c: Case) -> dict:
     row["background"] = str(res.options.get("background", "")).split(":")[0]
     row["offset_sigma"] = float(res.history[0].get("offset_sigma", float("nan"))) if res.history else float("nan")
     row["zingers"] = str(res.options.get("zingers", "")).split(" (")[0]
+    rings = str(res.options.get("rings", ""))
+    row["rings"] = ("removed, calibrated again" if "calibrated again" in rings else "removed"
+                    if rings.startswith("a fixed pattern") else "not removed")
     row["worse"] = bool(row["err_pdvc"] > row["err_nominal"] + 1e-6 or row["snr_gain"] < -1e-6)
     return row
 
@@ -410,6 +449,10 @@ def header(args) -> list:
         f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
         + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
+        + (f"; a fixed pattern of std {AIR['rings']} per column (--rings)" if AIR["rings"] else "")
+        + (f"; edge fringes, {AIR['phase']} x the Laplacian (--phase)" if AIR["phase"] else "")
+        + (f"; beam hardening, line integrals lowered by {AIR['hardening']} x p / p99.9 (--hardening)"
+           if AIR["hardening"] else "")
         + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
            f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else ""),
@@ -491,6 +534,15 @@ def main(argv=None) -> int:
     ap.add_argument("--zingers", type=float, default=0.0, metavar="FRACTION",
                     help="zingers: this fraction of the pixels of every view, at random, with line integrals lowered "
                          "by 0.5 to 3 (default 0: none)")
+    ap.add_argument("--rings", type=float, default=0.0, metavar="AMPLITUDE",
+                    help="a fixed pattern in every view: random offsets of std AMPLITUDE per column and AMPLITUDE/2 per "
+                         "pixel in the line integrals (a wrong flat field: rings; default 0: none)")
+    ap.add_argument("--phase", type=float, default=0.0, metavar="ALPHA",
+                    help="edge fringes of propagation-based phase contrast: ALPHA (px^2) times the Laplacian of each "
+                         "view subtracted from the exact line integrals before the noise (default 0: none)")
+    ap.add_argument("--hardening", type=float, default=0.0, metavar="BETA",
+                    help="residual beam hardening: each exact line integral p lowered by BETA * p / p99.9 of itself "
+                         "before the noise (cupping; default 0: none)")
     ap.add_argument("--half-turn", action="store_true",
                     help="every case a parallel scan over [0, 180 deg) instead of a full turn (cone angle 0)")
     ap.add_argument("--short-scan", action="store_true",
@@ -501,6 +553,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     AIR["drift"] = float(args.air)
     AIR["zingers"] = float(args.zingers)
+    AIR["rings"] = float(args.rings)
+    AIR["phase"] = float(args.phase)
+    AIR["hardening"] = float(args.hardening)
     SCAN["half_turn"] = bool(args.half_turn)
     SCAN["short_scan"] = bool(args.short_scan)
     if SCAN["half_turn"] and SCAN["short_scan"]:

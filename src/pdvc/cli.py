@@ -78,6 +78,9 @@ class _Progress:
             msg = f"  motion model ({info.get('elapsed_s', 0.0):.1f} s): {info.get('text', '')}"
         elif event == "assess":
             msg = "uncertainty and motion modes at the geometry kept"
+        elif event == "rings":
+            msg = (f"a pattern of the detector columns holds {100 * info.get('share', 0.0):.0f}% of the residual: the "
+                   "detector's fixed pattern (rings) is subtracted from every view and the scan calibrated again")
         else:
             msg = str(event)
         print(f"[{el:7.1f} s] {msg}", file=self.stream, flush=True)

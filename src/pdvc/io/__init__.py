@@ -44,6 +44,7 @@ from ._preprocess import (
 )
 from ._projections import DataError, FormatError, InputFileError, RawScan, classify_values, read_projections
 from ._vendor import VendorGeometry, read_nikon, read_skyscan, read_vendor_geometry
+from ._rings import RING_WIDTH, RingReport, remove_rings, ring_pattern
 from ._zingers import ZingerReport, remove_zingers
 
 __all__ = [
@@ -74,5 +75,5 @@ __all__ = [
     "atomic_write_npy",
     "atomic_write_text",
     "prepare_output_dir",
-    "run_fingerprint", "ZingerReport", "remove_zingers",
+    "run_fingerprint", "ZingerReport", "remove_zingers", "RingReport", "remove_rings", "ring_pattern", "RING_WIDTH",
 ]

@@ -136,6 +136,9 @@ that type needs) are required; everything else has the default shown.
                                 # bottom face (a sample longer than the volume); "auto": when the sample reaches them
     zingers = "auto"            # "auto" | "off": replace isolated pixels far from the reprojection of the nominal
                                 # reconstruction (zingers, hot and dead pixels) by their neighbours' median
+    rings = "auto"              # "auto" | "on" | "off": subtract the detector's fixed pattern (a flat field wrong at
+                                # some columns: rings) from every view; "auto": when it holds 10 % of the residual at
+                                # the calibrated geometry, and then calibrate again
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -390,6 +393,7 @@ class CalibrationConfig:
     noise: str = "image"
     truncation: str = "auto"
     zingers: str = "auto"
+    rings: str = "auto"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
@@ -487,7 +491,8 @@ class Config:
             vol = VolumeConfig(tuple(vol_geom.shape), tuple(vol_geom.voxel_size), tuple(vol_geom.offset))
         cal = self.calibration
         if stages is not None:
-            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation", "zingers")}
+            keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation", "zingers",
+                                                "rings")}
             cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
         return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
@@ -887,6 +892,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         noise=_choice(t.pop("noise", d.noise), w + "noise", ("image", "counts")),
         truncation=_choice(t.pop("truncation", d.truncation), w + "truncation", ("auto", "on", "off")),
         zingers=_choice(t.pop("zingers", d.zingers), w + "zingers", ("auto", "off")),
+        rings=_choice(t.pop("rings", d.rings), w + "rings", ("auto", "on", "off")),
         **kw,
     )
     t.finish(_CALIBRATION_KEYS)

@@ -107,6 +107,8 @@ def build_report(out, result, *, projections, angles, params_lab):
         summary["background per view"] = options["background"]
     if "zingers" in options:
         summary["zingers, hot and dead pixels"] = options["zingers"]
+    if "rings" in options:
+        summary["rings (a fixed pattern of the detector)"] = options["rings"]
     if asm is not None:
         summary["modes and uncertainties"] = (
             f"measured at the geometry returned, {asm.frame} frame, basis {', '.join(asm.basis_names)} "

@@ -171,7 +171,7 @@ class OutputWriter:
         atomic_write_text(self.out / RUN_FILE, json.dumps(info, indent=2, default=str) + "\n")
 
     def save_checkpoint(self, state: dict) -> None:
-        """The driver's state after a round (poses, history, stage index, rounds done, coarse offset)."""
+        """The driver's state after a round (poses, history, stage index, rounds done, coarse offset, rings removed)."""
         poses = state["poses"]
         offset_px = state.get("offset_px")
         with atomic_path(self.out / CHECKPOINT) as tmp:
@@ -184,6 +184,7 @@ class OutputWriter:
                     stage_index=np.array(int(state["stage_index"])),
                     rounds_done=np.array(int(state.get("rounds_done", 0))),
                     offset_px=np.array(np.nan if offset_px is None else float(offset_px)),
+                    rings=np.array(str(state.get("rings", ""))),
                 )
 
     def load_checkpoint(self):
@@ -203,6 +204,7 @@ class OutputWriter:
                 stage_index=int(z["stage_index"]),
                 rounds_done=int(z["rounds_done"]),
                 offset_px=None if np.isnan(off) else off,
+                rings=str(z["rings"]) if "rings" in z else "",
             )
 
     # -- final outputs ---------------------------------------------------------
