@@ -10,32 +10,14 @@ from __future__ import annotations
 
 import pytest
 
-from ..conftest import benchmark_module
-
-
-@pytest.fixture(scope="module")
-def bench():
-    with benchmark_module("bench_accuracy") as mod:
-        yield mod
-
-
-def _run(bench, amplitude: float, **options) -> dict:
-    saved = dict(bench.AIR), dict(bench.OPTIONS)
-    try:
-        bench.AIR["rings"] = amplitude
-        bench.OPTIONS.clear()
-        bench.OPTIONS.update(options)
-        return bench.run_case(bench.case(2, "quick"))
-    finally:
-        bench.AIR.clear(), bench.AIR.update(saved[0])
-        bench.OPTIONS.clear(), bench.OPTIONS.update(saved[1])
+from .conftest import run_bench_case
 
 
 @pytest.mark.slow
 def test_rings_are_taken_out_when_the_residual_shows_them(bench):
-    clean = _run(bench, 0.0)
-    auto = _run(bench, 0.05)
-    off = _run(bench, 0.05, rings="off")
+    clean = run_bench_case(bench, 2, dict(rings=0.0))
+    auto = run_bench_case(bench, 2, dict(rings=0.05))
+    off = run_bench_case(bench, 2, dict(rings=0.05), rings="off")
     assert clean["rings"] == "not removed"
     assert auto["rings"] == "removed, calibrated again"
     assert off["err_pdvc"] > 1.6 * auto["err_pdvc"], (off["err_pdvc"], auto["err_pdvc"])

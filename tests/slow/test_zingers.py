@@ -9,32 +9,14 @@ from __future__ import annotations
 
 import pytest
 
-from ..conftest import benchmark_module
-
-
-@pytest.fixture(scope="module")
-def bench():
-    with benchmark_module("bench_accuracy") as mod:
-        yield mod
-
-
-def _error(bench, fraction: float, **options) -> dict:
-    saved = dict(bench.AIR), dict(bench.OPTIONS)
-    try:
-        bench.AIR["zingers"] = fraction
-        bench.OPTIONS.clear()
-        bench.OPTIONS.update(options)
-        return bench.run_case(bench.case(2, "quick"))
-    finally:
-        bench.AIR.clear(), bench.AIR.update(saved[0])
-        bench.OPTIONS.clear(), bench.OPTIONS.update(saved[1])
+from .conftest import run_bench_case
 
 
 @pytest.mark.slow
 def test_zingers_taken_out_give_back_the_accuracy_of_a_clean_scan(bench):
-    clean = _error(bench, 0.0)
-    auto = _error(bench, 0.002)
-    off = _error(bench, 0.002, zingers="off")
+    clean = run_bench_case(bench, 2, dict(zingers=0.0))
+    auto = run_bench_case(bench, 2, dict(zingers=0.002))
+    off = run_bench_case(bench, 2, dict(zingers=0.002), zingers="off")
     assert clean["zingers"].startswith("none found")
     assert int(auto["zingers"].split()[0]) > 0
     assert auto["err_pdvc"] < 1.5 * clean["err_pdvc"] + 0.005, (auto["err_pdvc"], clean["err_pdvc"])
