@@ -22,3 +22,10 @@ def test_rings_are_taken_out_when_the_residual_shows_them(bench):
     assert auto["rings"] == "removed, calibrated again"
     assert off["err_pdvc"] > 1.6 * auto["err_pdvc"], (off["err_pdvc"], auto["err_pdvc"])
     assert auto["err_pdvc"] < 0.5 * auto["err_nominal"] and not auto["worse"]
+
+
+@pytest.mark.slow
+def test_rings_left_in_are_warned_about(bench, caplog):
+    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+        run_bench_case(bench, 4, dict(rings=0.05), rings="off")
+    assert any("pattern of the detector columns holds" in r.getMessage() for r in caplog.records)

@@ -399,6 +399,10 @@ def calibrate(
                       f"of the residual at the geometry of a first pass ({res.elapsed_s:.1f} s)")
         return _replace(again, elapsed_s=time.perf_counter() - t_start, options=dict(again.options, rings=rings_text),
                         timings=dict(again.timings, first_pass=res.elapsed_s))
+    if rings == "off" and share >= RING_SHARE:
+        log.warning("a pattern of the detector columns holds %.0f%% of the residual at the calibrated geometry (rings "
+                    "that pull the poses toward the nominal geometry): rings = 'auto' or 'on' subtracts the detector's "
+                    "fixed pattern (docs/method.md)", 100 * share)
     log.info(
         "calibration done in %.1f s (%s): SNR %.2f -> %.2f dB, entropy %.3f -> %.3f bits",
         res.elapsed_s, res.status.name.lower(), float(np.mean(res.snr_before)), float(np.mean(res.snr_after)),
