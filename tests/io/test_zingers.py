@@ -12,7 +12,7 @@ from pdvc.io import remove_zingers
 from pdvc.io._zingers import isolated_outliers
 from pdvc.projectors import forward
 
-from ..correlation.cases import error_px, make_case
+from ..correlation.cases import make_case
 
 
 def _zingers(p, fraction, seed=1):
