@@ -33,13 +33,10 @@ from scipy.ndimage import median_filter
 
 from ..errors import PdvcError, ShapeError
 
-__all__ = ["RingReport", "ring_pattern", "remove_rings", "RING_WIDTH", "RING_RATIO"]
+__all__ = ["RingReport", "ring_pattern", "remove_rings", "RING_WIDTH"]
 
 RING_WIDTH = 21
-"""Columns of the running median (patterns up to about 4 columns wide are taken)."""
-
-RING_RATIO = 3.0
-"""``rings = "auto"`` removes the pattern when its RMS is this many times what the noise alone leaves in the mean of the views."""
+"""Columns of the running median (patterns up to about 10 columns wide are taken)."""
 
 _CHUNK = 32 * 2**20  # bytes of views summed at a time
 
