@@ -60,6 +60,21 @@ def test_stage_round_trips_through_toml():
         stages_from_dicts([{"name": "x", "rotations": 3}])
 
 
+def test_default_recipe_on_nonneg_ls_spends_its_rounds_at_the_coarse_scale_and_refines_once():
+    # a short scan (the pipeline sets reconstruct = "nonneg_ls"): the coarse scale gets twice the rounds,
+    # the finest one refining round that is not asked to converge
+    stages = recipe_stages("default", (134, 160), reconstruct="nonneg_ls")
+    assert [(s.name, s.scale, s.rounds) for s in stages] == [("warmup", 2, 1), ("model", 2, 19), ("model", 1, 1), ("jolts", 1, 5)]
+    coarse, fine = stages[1], stages[2]
+    assert coarse.until == "converged" and fine.until == "rounds"
+    assert fine.diverge_tol == 0.0 and fine.reconstruct == coarse.reconstruct == "nonneg_ls"
+    # the user's max_outer, FDK, one scale, the precession recipe: rounds as before
+    assert [s.rounds for s in recipe_stages("default", (134, 160), reconstruct="nonneg_ls", max_outer=10)] == [1, 9, 10, 5]
+    assert [s.rounds for s in recipe_stages("default", (134, 160))] == [1, 9, 10, 5]
+    assert [s.rounds for s in recipe_stages("default", (76, 89), reconstruct="nonneg_ls")] == [1, 9, 5]
+    assert [s.rounds for s in recipe_stages("precession", (134, 160))] == [1, 7, 8]
+
+
 def test_default_recipe_is_a_warmup_then_the_model_at_each_scale_the_warmup_at_the_first_only():
     stages = recipe_stages("default", (76, 89))
     assert auto_scales((76, 89)) == (1,)

@@ -333,6 +333,12 @@ _RECIPE_MODEL = {
 }
 _RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
 
+# the default recipe on non-negative least-squares volumes over several scales (short scans): the
+# coarser scales get NONNEG_COARSE_ROUNDS times the recipe's rounds and the finest scale only
+# NONNEG_FINE_ROUNDS refining rounds (a fine round costs ~8 coarse ones; docs/method.md §5.15)
+NONNEG_COARSE_ROUNDS = 2
+NONNEG_FINE_ROUNDS = 1
+
 
 def recipe_stages(
     recipe: str = "default", det_shape=None, *, vol_shape=None, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
@@ -357,7 +363,10 @@ def recipe_stages(
         A model stage per scale, coarse to fine (the first scale also a warm-up).
     max_outer : int, optional
         Rounds per scale, warm-up included (recipe default: 10, 8 for
-        ``precession`` and ``jolts``).
+        ``precession`` and ``jolts``). Unset, the ``default`` recipe on
+        ``reconstruct="nonneg_ls"`` over several scales (short scans) gives
+        the coarser scales twice its rounds and the finest one refining
+        round (``docs/method.md`` §5.15).
     warmup : int
         Translation-only rounds before the model at the first scale, when the
         model frees a rotation (0: none).
@@ -412,13 +421,20 @@ def recipe_stages(
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
+    # the rounds of each scale: a non-negative least-squares loop creeps along its near-gauge modes by
+    # increments that shrink 10-20 % a round, cheaply at a coarse scale; the finest scale refines
+    rounds = [n_outer] * len(sched)
+    nonneg = isinstance(base.reconstruct, str) and base.reconstruct == "nonneg_ls"
+    if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None and NONNEG_FINE_ROUNDS:
+        rounds = [NONNEG_COARSE_ROUNDS * n_outer] * (len(sched) - 1) + [NONNEG_FINE_ROUNDS]
     stages = []
     for j, s in enumerate(sched):
         # translations first at the first scale only: a finer scale starts from poses the coarser one measured
-        n_warm = min(warmup, n_outer - 1) if base.frees_rotation and j == 0 else 0
+        n_warm = min(warmup, rounds[j] - 1) if base.frees_rotation and j == 0 else 0
         if n_warm:
             stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
-        stages.append(base.replace(scale=s, rounds=n_outer - n_warm, **(refine if j > 0 else {})))
+        fine = dict(until="rounds") if rounds[j] < n_outer else {}  # a refinement: its rounds, not a convergence
+        stages.append(base.replace(scale=s, rounds=rounds[j] - n_warm, **(refine if j > 0 else {}), **fine))
     if recipe == "default" and jolts:
         stages.append(jolt_stage(stages[-1]))
     return tuple(stages)
