@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -70,8 +72,18 @@ def _fdk_and_default(geom, vg, angles, *, offset, length, seed):
     return out
 
 
+def test_the_final_fit_says_when_the_stages_correlated_against_another_volume_than_fdk():
+    from pdvc.calibration._pipeline import _stage_fit_text
+
+    history = [dict(scale=2, chi_after=2.5), dict(scale=1, chi_after=1.2), dict(scale=1, chi_after=1.034)]
+    assert _stage_fit_text(Stage(scale=1), history) == ""
+    text = _stage_fit_text(Stage(scale=1, reconstruct="nonneg_ls"), history)
+    assert "nonneg_ls volume fitted the same data to chi 1.03" in text and "short scan" in text
+    assert "fitted" not in _stage_fit_text(Stage(scale=4, reconstruct="nonneg_ls"), history)  # no round at that scale
+
+
 @pytest.mark.slow
-def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstruction():
+def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstruction(caplog):
     """Known answer, no inverse crime: a cast-iron phantom projected analytically, Poisson noise.
 
     60 parallel views over [0°, 180°), the axis 2.6 px off centre and tilted
@@ -79,6 +91,7 @@ def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstr
     offset and leaves the tilt (0.144 px measured); on the non-negative
     least-squares volume, which the default now chooses, 0.065 px.
     """
+    caplog.set_level(logging.INFO, logger="pdvc")
     n = 64
     vg = VolumeGeometry((53, n, n), voxel_size=1.0)
     angles = np.linspace(0, np.pi, 60, endpoint=False)
@@ -88,6 +101,14 @@ def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstr
     assert auto[0].options["reconstruction"].startswith("a short parallel-beam scan")
     assert auto[0].success
     assert auto[1] < 0.1 and auto[1] < 0.6 * fbp[1]
+    # the final fits are against the FBP, whose own error over half a turn is no reason to warn or to
+    # advise a background: the log says what the stages' volume fitted instead
+    final = [i for i, r in enumerate(caplog.records) if r.getMessage().startswith("calibrated geometry")]
+    assert len(final) == 2  # the FBP run's, then the default's
+    last = caplog.records[final[1]]
+    assert "nonneg_ls volume fitted the same data" in last.getMessage() and last.levelname == "INFO"
+    assert "nonneg_ls" not in caplog.records[final[0]].getMessage()
+    assert not any("a constant per view holds" in r.getMessage() for r in caplog.records[final[0] + 1:])
 
 
 @pytest.mark.slow
