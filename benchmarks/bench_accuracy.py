@@ -393,11 +393,14 @@ def run_case(c: Case) -> dict:
         res = pdvc.calibrate(p, geom, vg, **OPTIONS)
     except Exception as exc:  # noqa: BLE001 - a crash is a result of the benchmark too
         row.update(time_s=time.perf_counter() - t0, status=f"ERROR {type(exc).__name__}: {exc}"[:200], success=False,
-                   err_pdvc=float("nan"), snr_before=float("nan"), snr_gain=float("nan"), entropy_change=float("nan"),
+                   err_pdvc=float("nan"), err_rejected=float("nan"), snr_before=float("nan"), snr_gain=float("nan"), entropy_change=float("nan"),
                    worse=True)
         return row
     row["time_s"] = time.perf_counter() - t0
     row["err_pdvc"] = err(res.geometry)
+    # a calibration that fitted worse than nominal returns the nominal geometry; how far the one it
+    # rejected was from the truth says whether the check threw away a better geometry
+    row["err_rejected"] = err(res.rejected_geometry) if res.rejected_geometry is not None else float("nan")
     row["snr_before"] = float(np.mean(res.snr_before))
     row["snr_gain"] = float(np.mean(res.snr_after) - np.mean(res.snr_before))
     row["entropy_change"] = float(res.entropy_after - res.entropy_before)
@@ -466,6 +469,8 @@ CASE_FMT = ("{seed:>4} {family:8s} {motion:9s} i0={i0:<7.0e} cone={cone_deg:4.1f
 
 def case_line(r: dict) -> str:
     flag = "  WORSE THAN NOMINAL" if r.get("worse") else ""
+    if r.get("err_rejected") == r.get("err_rejected"):  # not NaN
+        flag += f" (rejected geometry {r['err_rejected']:.3f} px)"
     return CASE_FMT.format(flag=flag, **r)
 
 
