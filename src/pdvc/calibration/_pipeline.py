@@ -626,8 +626,8 @@ def _stage_fit_text(stage: Stage, history) -> str:
     chi = [h["chi_after"] for h in history if "chi_after" in h and h.get("scale") == stage.scale]
     name = stage.reconstruct if isinstance(stage.reconstruct, str) else "its own"
     fit = f"; the stages' {name} volume fitted the same data to chi {chi[-1]:.3g}" if chi else ""
-    return (f" (against FDK/FBP, as for the nominal geometry{fit}; on a short scan FDK/FBP leaves an error of its "
-            f"own, which this diagnosis counts)")
+    return (f" (against FDK/FBP, as for the nominal geometry{fit}; on a short scan or a non-planar orbit FDK/FBP leaves an error "
+            f"of its own, which this diagnosis counts)")
 
 
 def _same_volume(made_by: Stage, stage: Stage) -> bool:

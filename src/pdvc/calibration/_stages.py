@@ -422,7 +422,7 @@ def recipe_stages(
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
     # the rounds of each scale: a non-negative least-squares loop creeps along its near-gauge modes by
-    # increments that shrink 10-20 % a round, cheaply at a coarse scale; the finest scale refines
+    # increments that shrink 10-40 % a round, cheaply at a coarse scale; the finest scale refines
     rounds = [n_outer] * len(sched)
     nonneg = isinstance(base.reconstruct, str) and base.reconstruct == "nonneg_ls"
     if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None and NONNEG_FINE_ROUNDS:
