@@ -566,17 +566,21 @@ def _truncation(mode, weights, geom, vol_geom, vol_initial):
     return w, found
 
 
-def _fit(scaled, poses, stage: Stage, volume=None, made=None):
+def _fit(scaled, poses, stage: Stage, volume=None, made=None, own=False):
     """Per-view SNR and residual diagnosis of the data against FDK/FBP with the geometry posed by ``poses``.
 
     Measured as ``stage`` correlates: on ``scaled``, its scale's
     :func:`data_at_scale`, and its correlation grid; ``volume`` (on the
     user's grid) is reused when that is the same grid, and ``made`` (a
     driver's ``fit_volume``) when a round already reconstructed that volume.
+    ``own``: against the stage's own reconstruction (e.g. ``nonneg_ls``,
+    with the stage's detector weights) instead of FDK/FBP.
     """
     p, geom, vol_geom, weights, gamma2 = scaled
     g = geom.apply(poses)
-    if made is not None and made[0] is poses and _same_volume(made[1], stage):
+    if own:
+        volume = correlation_volume(p, vol_geom, g, stage, weights=weights)
+    elif made is not None and made[0] is poses and _same_volume(made[1], stage):
         volume = made[2]
     elif volume is None or stage.scale != 1 or stage.oversample != 1:
         volume = correlation_volume(p, vol_geom, g, stage.replace(reconstruct="fdk"))
@@ -605,13 +609,9 @@ def _recheck(scaled, poses, stage: Stage, snr_before, snr_after):
     stages correlated against another volume (``nonneg_ls`` on a short
     scan). Both geometries are measured the same way, on the same data.
     """
-    p, geom, vol_geom, weights, gamma2 = scaled
-    fits = []
-    for q in (Poses.identity(geom.n_views), poses):
-        g = geom.apply(q)
-        volume = correlation_volume(p, vol_geom, g, stage, weights=weights)
-        fits.append(_snr_of(p, p - forward(volume, refined_grid(vol_geom, stage.oversample), g), weights))
-    name = stage.reconstruct if isinstance(stage.reconstruct, str) else "the stages'"
+    nominal = Poses.identity(scaled[1].n_views)
+    fits = [_fit(scaled, q, stage, own=True)[0] for q in (nominal, poses)]
+    name = stage.reconstruct if isinstance(stage.reconstruct, str) else "own"
     log.warning("against FDK/FBP the nominal geometry fits better (mean SNR %.2f dB, calibrated %.2f dB); against the "
                 "stages' %s volume %.2f dB nominal, %.2f dB calibrated: that comparison decides (on a short scan FDK/FBP "
                 "leaves an error of its own)", np.mean(snr_before), np.mean(snr_after), name, np.mean(fits[0]),

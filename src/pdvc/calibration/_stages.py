@@ -425,7 +425,7 @@ def recipe_stages(
     # increments that shrink 10-40 % a round, cheaply at a coarse scale; the finest scale refines
     rounds = [n_outer] * len(sched)
     nonneg = isinstance(base.reconstruct, str) and base.reconstruct == "nonneg_ls"
-    if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None and NONNEG_FINE_ROUNDS:
+    if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None:
         rounds = [NONNEG_COARSE_ROUNDS * n_outer] * (len(sched) - 1) + [NONNEG_FINE_ROUNDS]
     stages = []
     for j, s in enumerate(sched):
