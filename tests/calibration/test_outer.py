@@ -318,7 +318,7 @@ def test_a_round_whose_correlation_lowers_nothing_is_a_fixed_point_not_a_converg
 
 def test_nonneg_ls_step_bound_is_estimated_once_per_grid(small_case, monkeypatch):
     """The rounds of a nonneg_ls stage reconstruct again and again on one grid: the
-    step bound (8 forward and 8 back-projections) is estimated at the first and
+    step bound (3 forward and 3 back-projections) is estimated at the first and
     reused, and the volumes are those nonneg_ls makes with that bound."""
     from pdvc.calibration import _driver
     from pdvc.recon import nonneg_ls_lipschitz
