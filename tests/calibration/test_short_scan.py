@@ -109,6 +109,9 @@ def test_a_180_degree_parallel_scan_calibrates_better_on_the_consistent_reconstr
     assert "nonneg_ls volume fitted the same data" in last.getMessage() and last.levelname == "INFO"
     assert "nonneg_ls" not in caplog.records[final[0]].getMessage()
     assert not any("a constant per view holds" in r.getMessage() for r in caplog.records[final[0] + 1:])
+    # the result carries the same note for the report's residual row; the FBP run has none
+    assert auto[0].residual_note and auto[0].residual_note in last.getMessage()
+    assert fbp[0].residual_note == ""
 
 
 @pytest.mark.slow

@@ -98,6 +98,11 @@ class CalibrationResult(PosesResult):
         geometry (:func:`diagnose_residual`); the calibrated one is logged as
         a warning when its χ is above 2 (at the nominal geometry the motion
         itself dominates the residual).
+    residual_note : str
+        With the calibrated geometry returned and a last stage that
+        correlated against another volume than FDK/FBP (``nonneg_ls``):
+        that the returned diagnosis is against FDK/FBP and what the stages'
+        volume fitted (the report's residual row); else ``""``.
     """
 
     geometry: VectorGeometry
@@ -125,6 +130,7 @@ class CalibrationResult(PosesResult):
     rejected_geometry: Optional[VectorGeometry] = None
     truncation: object = None
     residual: tuple = ()
+    residual_note: str = ""
 
 
 def per_view_snr(projections, volume, vol_geom, geom, *, weights=None) -> np.ndarray:
@@ -678,6 +684,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         status = Status.WORSE_THAN_NOMINAL
         poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
         diagnoses = (diagnoses[0], diagnoses[0])
+        other = ""  # the nominal geometry returned: its diagnosis is the nominal one
     lo, hi = np.percentile(vol, [0.1, 99.9])
     e_before = shannon_entropy(vol_initial, value_range=(float(lo), float(hi)))
     e_after = shannon_entropy(vol, value_range=(float(lo), float(hi)))
@@ -699,7 +706,8 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         stage_outcomes=drv.stages, volume=np.asarray(vol, np.float32), volume_initial=np.asarray(vol_initial, np.float32),
         vol_geom=vol_geom, snr_before=snr_before, snr_after=snr_after, entropy_before=float(e_before),
         entropy_after=float(e_after), motion=motion, gauge=gauge_text(geom.kind, fix_scale), status=status,
-        message=str(message), elapsed_s=0.0, timings=timings, rejected_geometry=rejected, residual=diagnoses, **extra,
+        message=str(message), elapsed_s=0.0, timings=timings, rejected_geometry=rejected, residual=diagnoses,
+        residual_note=other, **extra,
     )
 
 

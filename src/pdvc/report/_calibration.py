@@ -7,7 +7,6 @@ import logging
 import numpy as np
 
 from ..projectors import forward
-from ..calibration._pipeline import _stage_fit_text
 
 log = logging.getLogger("pdvc.report")
 
@@ -97,7 +96,7 @@ def build_report(out, result, *, projections, angles, params_lab):
         # the diagnosis is of the data against the volume: a background the correlation fitted is still in it
         summary[f"residual, {when} geometry"] = d.describe() + (" (before the background per view fitted with the motion)"
                                                                  if fitted and when == "returned" else "") + (
-            _stage_fit_text(result.stages[-1], result.history) if when == "returned" and getattr(result, "stages", ()) and getattr(result, "rejected_geometry", None) is None else "")
+            getattr(result, "residual_note", "") if when == "returned" else "")
     if getattr(result, "truncation", None) is not None:
         summary["sample and volume"] = result.truncation.describe()
     options = getattr(result, "options", None) or {}
