@@ -56,6 +56,7 @@ never be.
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
     python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
     python benchmarks/bench_accuracy.py --quick --short-scan    # ... as cone-beam short scans (180° + the fan angle)
+    python benchmarks/bench_accuracy.py --quick --roi 1.0 --option roi='"on"'   # samples wider than the field of view
 """
 
 from __future__ import annotations
@@ -91,6 +92,9 @@ AIR = {"drift": 0.0, "zingers": 0.0, "rings": 0.0, "phase": 0.0, "hardening": 0.
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG)
 SCAN = {"half_turn": False, "short_scan": False}
+# --roi: the samples' radius in units of the volume's width n (0: the families' own, 0.36 n, inside the volume). Above
+# 0.7 n the sample is wider than the detector's field of view: a region-of-interest scan (lateral truncation)
+ROI = {"radius": 0.0}
 SHORT_SCAN_CONE_DEG = 6.0
 
 
@@ -252,6 +256,16 @@ def phantom(c: Case):
     from pdvc.simulate import cast_iron_phantom, foam_phantom, granular_phantom
 
     n = c.n
+    if ROI["radius"]:  # a wider sample of the same material: inclusions, pores, grains and wall keep their size
+        r = ROI["radius"] * n
+        k = 0.36 * n / r
+        if c.family == "rod":
+            return cast_iron_phantom(r, 3 * n, n_nodules=int(round(11 * n / k**2)), nodule_size=(0.02 * k, 0.06 * k),
+                                     inclusion_size=(0.02 * k, 0.04 * k), seed=c.seed)
+        if c.family == "foam":
+            return foam_phantom(r, 0.8 * n, cell_size=(0.08 * k, 0.18 * k), seed=c.seed)
+        if c.family == "granular":
+            return granular_phantom(r, 0.8 * n, grain_size=(0.1 * k, 0.2 * k), wall=0.05 * k, seed=c.seed)
     if c.family == "rod":  # 3x longer than the volume: crosses its top and bottom faces
         return cast_iron_phantom(0.36 * n, 3 * n, n_nodules=11 * n, seed=c.seed)
     if c.family == "foam":
@@ -458,7 +472,9 @@ def header(args) -> list:
            if AIR["hardening"] else "")
         + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
-           f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else ""),
+           f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else "")
+        + (f"; samples of radius {ROI['radius']:g} n, wider than the field of view of 0.7 n (--roi)"
+           if ROI["radius"] > 0.7 else f"; samples of radius {ROI['radius']:g} n (--roi)" if ROI["radius"] else ""),
     ]
 
 
@@ -553,6 +569,9 @@ def main(argv=None) -> int:
     ap.add_argument("--short-scan", action="store_true",
                     help="every case a cone-beam short scan over 180 deg + the fan angle, end views included "
                          f"(parallel cases at a {SHORT_SCAN_CONE_DEG:g} deg cone half-angle)")
+    ap.add_argument("--roi", type=float, default=0.0, metavar="RADIUS",
+                    help="every sample of radius RADIUS times the volume's width (default 0: 0.36, inside the volume); "
+                         "above 0.7 it is wider than the detector: a region-of-interest scan (lateral truncation)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)
@@ -563,6 +582,9 @@ def main(argv=None) -> int:
     AIR["hardening"] = float(args.hardening)
     SCAN["half_turn"] = bool(args.half_turn)
     SCAN["short_scan"] = bool(args.short_scan)
+    if args.roi < 0:
+        ap.error("--roi must be >= 0")
+    ROI["radius"] = float(args.roi)
     if SCAN["half_turn"] and SCAN["short_scan"]:
         ap.error("--half-turn and --short-scan exclude each other")
     for item in args.option:

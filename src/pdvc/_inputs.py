@@ -66,7 +66,7 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -
         stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **params)
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
-        truncation=cal.truncation, zingers=cal.zingers, rings=cal.rings,
+        truncation=cal.truncation, zingers=cal.zingers, rings=cal.rings, roi=cal.roi,
     )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)

@@ -36,6 +36,7 @@ class Status(enum.IntEnum):
     DIVERGED = -2
     WORSE_THAN_NOMINAL = -3
     MOTION_TOO_LARGE = -4
+    UNDETERMINED = -5
 
     @property
     def success(self) -> bool:
@@ -69,4 +70,6 @@ _MESSAGES = {
     Status.WORSE_THAN_NOMINAL: "failed: the calibrated geometry fits the data worse than the nominal one; "
     "the nominal geometry is returned",
     Status.MOTION_TOO_LARGE: "not converged: the motion may be too large for the linearisation",
+    Status.UNDETERMINED: "failed: the nominal geometry already fits the data to the noise, so the data cannot tell a "
+    "calibrated geometry from it; the nominal geometry is returned",
 }

@@ -400,3 +400,14 @@ def test_extrapolate_reaches_the_model_stage(tmp_path):
     assert cfg.calibration.recipe_parameters() == {"extrapolate": True}
     stages = recipe_stages(det_shape=(64, 64), **cfg.calibration.recipe_parameters())
     assert [s.extrapolate for s in stages if s.name == "model"] == [True]
+
+
+def test_roi_is_read_defaults_to_off_and_reaches_calibrate(tmp_path):
+    from pdvc._inputs import calibration_options
+
+    assert load_config(_cfg(), base_dir=tmp_path).calibration.roi == "off"
+    cfg = load_config(_cfg(calibration={"roi": "auto"}), base_dir=tmp_path)
+    assert cfg.calibration.roi == "auto"
+    assert calibration_options(cfg.calibration, (64, 64))["roi"] == "auto"
+    with pytest.raises(ConfigError, match="roi"):
+        load_config(_cfg(calibration={"roi": "yes"}), base_dir=tmp_path)

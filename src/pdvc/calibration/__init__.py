@@ -23,7 +23,7 @@ from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views,
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
-from ._truncation import Truncation, detect_truncation, truncation_weights
+from ._truncation import Truncation, cylinder_window, detect_truncation, outside_pattern, truncation_weights
 from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages, short_scan_reconstruction
 from ._select import MIN_MODEL_GAIN, MODELS, ModelChoice, compare_models
 from ._stages import (
@@ -80,6 +80,8 @@ __all__ = [
     "offset_poses",
     "truncation_weights",
     "detect_truncation",
+    "outside_pattern",
+    "cylinder_window",
     "Truncation",
     "diagnose_residual",
     "ResidualDiagnosis",

@@ -245,6 +245,7 @@ def calibrate(
     truncation: str = "auto",
     zingers: str = "auto",
     rings: str = "auto",
+    roi: str = "off",
     noise_variance: Optional[float] = None,
     times=None,
     center=None,
@@ -311,6 +312,21 @@ def calibrate(
         it and calibrate again (``docs/method.md`` §5.13). The
         projections given are not modified; the calibration and its final
         volume use the copy.
+    roi : {"auto", "on", "off"}
+        A sample wider than the detector's field of view (a region-of-
+        interest scan) adds the material outside the volume to every ray.
+        ``"on"``: subtract from every view what the material outside the
+        volume's inscribed cylinder adds on average over the views
+        (:func:`outside_pattern`; the reconstructions carry the rows' edge
+        values outward for the ramp filter) and calibrate on that copy;
+        the final volumes are reconstructed from the data given, with the
+        same padding; a scan whose nominal fit is then already at the noise
+        (chi <= ``ROI_NOMINAL_CHI``) returns the nominal geometry with
+        ``Status.UNDETERMINED``. ``"auto"``: when the nominal reconstruction
+        shows material at the volume's sides (:func:`detect_truncation`).
+        ``"off"`` (the default: held out, the average estimated at the
+        starting geometry pins part of an axis offset and tilt there;
+        ``docs/method.md`` §5.17).
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -332,7 +348,7 @@ def calibrate(
     """
     t_start = time.perf_counter()
     given = dict(recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, init=init,
-                 fix_scale=fix_scale, weights=weights, truncation=truncation, zingers=zingers, noise_variance=noise_variance,
+                 fix_scale=fix_scale, weights=weights, truncation=truncation, zingers=zingers, roi=roi, noise_variance=noise_variance,
                  times=times, center=center, backend=backend, initial_poses=initial_poses, checkpoint=checkpoint,
                  progress=progress, **model)
     p = _validate(projections, geom, vol_geom, weights)
@@ -344,6 +360,8 @@ def calibrate(
         raise CalibrationError(f"zingers must be 'auto' or 'off', got {zingers!r}")
     if rings not in ("auto", "on", "off"):
         raise CalibrationError(f"rings must be 'auto', 'on' or 'off', got {rings!r}")
+    if roi not in ("auto", "on", "off"):
+        raise CalibrationError(f"roi must be 'auto', 'on' or 'off', got {roi!r}")
     if resume and resume.get("rings") == "on":  # the run being resumed had decided to remove them
         rings = "on"
     model, short_scan = short_scan_reconstruction(geom, stages, **model)
@@ -361,6 +379,9 @@ def calibrate(
     p, vol_initial, found_zingers = _zingers(zingers, p, vol_geom, geom, vol_initial, timings, poses)
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     weights, trunc = _truncation(truncation, weights, geom, vol_geom, vol_initial)
+    p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
+    if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral):
+        p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
     def state_checkpoint(state):
         if checkpoint is not None:
@@ -379,6 +400,7 @@ def calibrate(
     options = dict(
         recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
+        roi=_roi_text(roi, p_out is not None),
         background=_background_text(drv), zingers=found_zingers.describe() if found_zingers is not None else "not checked",
         rings=found_rings.describe() if found_rings is not None else (
             "not removed (rings = 'off')" if rings == "off" else "not removed: no fixed pattern of the detector stood out "
@@ -390,7 +412,7 @@ def calibrate(
         log.info("background: %s", options["background"])
     res = _finish(
         p, geom, vol_geom, vol_initial, drv, stage_list, status, message, gamma2, weights, times, center, backend,
-        fix_scale, emit, timings, dict(initial_offset_px=offset_px, options=options, truncation=trunc),
+        fix_scale, emit, timings, dict(initial_offset_px=offset_px, options=options, truncation=trunc), p_out=p_out,
     )
     res = _replace(res, elapsed_s=time.perf_counter() - t_start)
     share = _fixed_pattern_share(res)
@@ -555,6 +577,36 @@ def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
     return p, vol_initial, total
 
 
+#: roi: a region-of-interest scan whose fit at the nominal geometry has chi at most this (the outside's average
+#: subtracted) returns the nominal geometry with Status.UNDETERMINED. Tuning (bench_accuracy.py --quick --roi 1.0
+#: --split tuning): three rods at i0 = 2e3, chi 0.90-0.94 at nominal, calibrated 0.05-0.19 px farther from the truth;
+#: foam and granular 1.75-3.27
+ROI_NOMINAL_CHI = 1.1
+
+
+def _roi(p, geom, vol_geom, poses, timings):
+    """A region-of-interest scan: the data with the outside's average subtracted, and its nominal reconstruction."""
+    from ._truncation import outside_pattern
+
+    t0 = time.perf_counter()
+    g = geom if poses is None else geom.apply(poses)
+    pattern = outside_pattern(p, vol_geom, g)
+    log.info("roi: the material outside the volume's inscribed cylinder adds %.3g on average to a ray (RMS over the "
+             "detector, line integrals); subtracted from every view", float(np.sqrt(np.mean(pattern.astype(np.float64) ** 2))))
+    q = p - pattern[None]
+    timings["roi"] = time.perf_counter() - t0
+    return q, reconstruct(q, vol_geom, geom)
+
+
+def _roi_text(mode: str, done: bool) -> str:
+    if done:
+        return ("the average over the views of what the material outside the volume's inscribed cylinder adds to a "
+                "ray was subtracted (a region-of-interest scan); the output volumes are reconstructed from the data "
+                "given, the rows' edge values carried outward for the ramp filter")
+    return ("not compensated (roi = 'off')" if mode == "off"
+            else "not compensated: the sample lies within the volume's sides")
+
+
 def _truncation(mode, weights, geom, vol_geom, vol_initial):
     """The detector weights with the truncated rays dropped when ``mode`` says so (and what was found)."""
     from ._truncation import detect_truncation, truncation_weights
@@ -642,8 +694,14 @@ def _same_volume(made_by: Stage, stage: Stage) -> bool:
             and (made_by.scale, made_by.oversample, made_by.oversample_by) == (stage.scale, stage.oversample, stage.oversample_by))
 
 
-def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra):
-    """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment."""
+def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra,
+            p_out=None):
+    """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment.
+
+    ``p_out``: the data the output volumes are reconstructed from (with the rows' edges carried outward) when the
+    stages calibrated on a copy with the outside of a region-of-interest scan subtracted (``p``); the fits and the
+    assessment use ``p``.
+    """
     t0 = time.perf_counter()
     poses = drv.poses
     calibrated = geom.apply(poses)
@@ -674,7 +732,15 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         # again against the volume the stages correlated with, on the same data, and keep that verdict
         snr_before, snr_after = _recheck(scaled, poses, last, snr_before, snr_after)
     rejected = None
-    if np.mean(snr_after) < np.mean(snr_before):
+    if p_out is not None and d0.chi <= ROI_NOMINAL_CHI:
+        # a region-of-interest scan whose nominal fit is already at the noise once the outside's average is
+        # subtracted: what the calibration moves is not seen above the noise (docs/method.md §5.17)
+        rejected = calibrated
+        message = (f"{Status.UNDETERMINED.message} (region-of-interest scan: chi {d0.chi:.3f} at the nominal geometry, "
+                   f"{d1.chi:.3f} calibrated; the run itself ended with: {message})")
+        log.warning(message)
+        status = Status.UNDETERMINED
+    elif np.mean(snr_after) < np.mean(snr_before):
         rejected = calibrated
         message = (
             f"{Status.WORSE_THAN_NOMINAL.message} (mean SNR {np.mean(snr_before):.2f} dB nominal, "
@@ -682,9 +748,15 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         )
         log.warning(message)
         status = Status.WORSE_THAN_NOMINAL
+    if rejected is not None:
         poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
         diagnoses = (diagnoses[0], diagnoses[0])
         other = ""  # the nominal geometry returned: its diagnosis is the nominal one
+    vol_fit = vol
+    if p_out is not None:  # the user's volumes hold the whole field of view, the outside's average included
+        emit(dict(event="reconstruct", what="output volumes"))
+        vol_initial = reconstruct(p_out, vol_geom, geom, padding="edge")
+        vol = vol_initial if rejected is not None else reconstruct(p_out, vol_geom, calibrated, padding="edge")
     lo, hi = np.percentile(vol, [0.1, 99.9])
     e_before = shannon_entropy(vol_initial, value_range=(float(lo), float(hi)))
     e_after = shannon_entropy(vol, value_range=(float(lo), float(hi)))
@@ -699,7 +771,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     emit(dict(event="assess"))
     t0 = time.perf_counter()
     ran = [with_model(s, drv.model_choice) for s in stages]  # the model a stage with candidates ran
-    assessment = _assess(p, geom, vol_geom, vol, poses, ran, gamma2, weights, times, center, backend, scaled, drv.background)
+    assessment = _assess(p, geom, vol_geom, vol_fit, poses, ran, gamma2, weights, times, center, backend, scaled, drv.background)
     timings["assess"] = time.perf_counter() - t0
     return CalibrationResult(
         geometry=calibrated, nominal=geom, poses=poses, assessment=assessment, history=drv.history, stages=tuple(stages),

@@ -20,7 +20,22 @@ import numpy as np
 from ..errors import InputTypeError
 from ..geometry import VectorGeometry, VolumeGeometry
 
-__all__ = ["truncation_weights", "detect_truncation", "Truncation"]
+__all__ = ["truncation_weights", "detect_truncation", "Truncation", "outside_pattern", "cylinder_window"]
+
+
+def _rays(geom: VectorGeometry, chunk: int):
+    """Chunks of views: ``(slice, a, d)``, every pixel's ray ``a + t d``, ``(views, n_rows, n_cols, 3)`` each."""
+    nr, nc = geom.det_shape
+    jj, ii = np.meshgrid(np.arange(nc) - (nc - 1) / 2, np.arange(nr) - (nr - 1) / 2)
+    for k0 in range(0, geom.n_views, chunk):
+        ks = slice(k0, min(k0 + chunk, geom.n_views))
+        pix = (geom.det_center[ks, None, None, :] + jj[None, :, :, None] * geom.u[ks, None, None, :]
+               + ii[None, :, :, None] * geom.v[ks, None, None, :])
+        if geom.kind == "cone":
+            a = np.broadcast_to(geom.src[ks, None, None, :], pix.shape)
+            yield ks, a, pix - a
+        else:
+            yield ks, pix, np.broadcast_to(geom.ray[ks, None, None, :], pix.shape)
 
 
 def truncation_weights(geom: VectorGeometry, vol_geom: VolumeGeometry, *, margin_voxels: float = 2.0, chunk: int = 16) -> np.ndarray:
@@ -49,21 +64,10 @@ def truncation_weights(geom: VectorGeometry, vol_geom: VolumeGeometry, *, margin
     # a thin slab (a few slices) keeps at least its middle half
     dz = min(float(margin_voxels), 0.25 * vol_geom.shape[0]) * float(vol_geom.voxel_size[0])
     z_lo, z_hi = lo[2] + dz, hi[2] - dz
-    nr, nc = geom.det_shape
-    jj, ii = np.meshgrid(np.arange(nc) - (nc - 1) / 2, np.arange(nr) - (nr - 1) / 2)
-    out = np.empty((geom.n_views, nr, nc), np.float32)
-    for k0 in range(0, geom.n_views, chunk):
-        ks = slice(k0, min(k0 + chunk, geom.n_views))
-        pix = (geom.det_center[ks, None, None, :] + jj[None, :, :, None] * geom.u[ks, None, None, :]
-               + ii[None, :, :, None] * geom.v[ks, None, None, :])
-        if geom.kind == "cone":
-            a = np.broadcast_to(geom.src[ks, None, None, :], pix.shape)
-            d = pix - a
-        else:
-            d = np.broadcast_to(geom.ray[ks, None, None, :], pix.shape)
-            a = pix
-        s0 = np.full(pix.shape[:3], -np.inf)
-        s1 = np.full(pix.shape[:3], np.inf)
+    out = np.empty((geom.n_views, *geom.det_shape), np.float32)
+    for ks, a, d in _rays(geom, chunk):
+        s0 = np.full(d.shape[:3], -np.inf)
+        s1 = np.full(d.shape[:3], np.inf)
         for ax in (0, 1):  # slab intersection with the footprint in x and y
             da = d[..., ax]
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -143,3 +147,43 @@ def detect_truncation(volume, vol_geom: VolumeGeometry, *, threshold: float = 0.
     ring = (r > 0.9) & (r <= 1.0)
     edge = float(v[nz // 4: max(3 * nz // 4, nz // 4 + 1)][:, ring].mean()) / centre
     return Truncation(vertical_possible and ends > threshold, edge > threshold, ends, edge)
+
+
+def cylinder_window(vol_geom: VolumeGeometry, *, taper: float = 0.2) -> np.ndarray:
+    """A soft cylinder about the volume's z axis: 1 inside ``(1 - taper)`` of the inscribed radius, 0 outside it.
+
+    ``(ny, nx)`` float32, falling linearly to zero between the two radii. The
+    re-projection of a volume multiplied by it has the same support, and
+    (about a centred axis) the same profile, in every view: no square corner
+    of the box comes and goes with the angle.
+    """
+    nz, ny, nx = vol_geom.shape
+    sy, sx = float(vol_geom.voxel_size[1]), float(vol_geom.voxel_size[2])
+    y = (np.arange(ny) - (ny - 1) / 2) * sy
+    x = (np.arange(nx) - (nx - 1) / 2) * sx
+    r = np.hypot(y[:, None], x[None, :]) / (0.5 * min(ny * sy, nx * sx))
+    return np.clip((1.0 - r) / taper, 0.0, 1.0).astype(np.float32)
+
+
+def outside_pattern(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, *, taper: float = 0.2) -> np.ndarray:
+    """What a sample wider than the volume adds to every view: the mean over the views of the data minus the
+    re-projection of its reconstruction inside the volume's inscribed cylinder, ``(n_rows, n_cols)`` float32.
+
+    A region-of-interest scan sees the sample outside the field of view on
+    every ray. About the rotation axis that part is nearly the same in every
+    view, so its mean over the views, subtracted, leaves the projections of
+    the cylinder alone (its structure outside the cylinder, less its mean,
+    stays as noise). The reconstruction carries the rows' edge values outward
+    for the ramp filter (``padding="edge"``), which keeps the bright rim of a
+    truncated reconstruction out of the cylinder.
+    """
+    from ..projectors import forward
+    from ..recon import analytic
+
+    vol = analytic(projections, vol_geom, geom, padding="edge")
+    vol *= cylinder_window(vol_geom, taper=taper)[None]
+    q = forward(vol, vol_geom, geom)
+    out = np.zeros(geom.det_shape, np.float64)
+    for k0 in range(0, geom.n_views, 64):
+        out += (np.asarray(projections[k0:k0 + 64], np.float64) - q[k0:k0 + 64]).sum(axis=0)
+    return (out / geom.n_views).astype(np.float32)

@@ -406,7 +406,7 @@ class DaskSession:
         self._store(self._bands, id(arr), arr, bands, keep=2)
         return (b0, b1), part
 
-    def reconstruct(self, arr, vol_geom, geom, weights, *, filter, cutoff, out, views_per_block):
+    def reconstruct(self, arr, vol_geom, geom, weights, *, filter, cutoff, out, views_per_block, padding="zero"):
         """FDK/FBP (``pdvc.recon._fbp._reconstruct``) by slabs of z, each from its band of detector rows."""
         from ..geometry import VolumeGeometry
         from ..recon._fbp import _reconstruct, _w2_min, projection_matrices
@@ -421,7 +421,8 @@ class DaskSession:
 
             with use_scheduler("threads"):
                 return _reconstruct(
-                    arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out, views_per_block=views_per_block
+                    arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out, views_per_block=views_per_block,
+                    padding=padding,
                 )
         nz, ny, nx = vol_geom.shape
         nr, nc = geom.det_shape
@@ -439,7 +440,7 @@ class DaskSession:
                 band_geom = geom.cropped((b0, b1), (0, nc))
                 futs.append(
                     self.client.submit(
-                        _tasks.reconstruct_slab, part, slab_vg, band_geom, weights, filter, cutoff, views_per_block,
+                        _tasks.reconstruct_slab, part, slab_vg, band_geom, weights, filter, cutoff, views_per_block, padding,
                         key=f"{tag}-{i}", retries=RETRIES,
                     )
                 )

@@ -86,7 +86,7 @@ def per_view_chunk(fn, volume, vol_geom, geom, projections, weights) -> np.ndarr
     return np.asarray(fn(volume, vol_geom, geom, _data(projections), _data(weights)))
 
 
-def reconstruct_slab(band, slab_geom, band_geom, weights, filter, cutoff, views_per_block) -> np.ndarray:
+def reconstruct_slab(band, slab_geom, band_geom, weights, filter, cutoff, views_per_block, padding="zero") -> np.ndarray:
     """FDK/FBP of one slab of z from the detector rows it projects onto, ``(nz_slab, ny, nx)`` float32."""
     from ..recon._fbp import _reconstruct
     from ._scheduler import use_scheduler
@@ -95,7 +95,8 @@ def reconstruct_slab(band, slab_geom, band_geom, weights, filter, cutoff, views_
     arr = _data(band)
     with use_scheduler("threads"):  # also when the worker shares this process: never dispatch again
         return _reconstruct(
-            arr, slab_geom, band_geom, weights, filter=filter, cutoff=cutoff, out=None, views_per_block=views_per_block
+            arr, slab_geom, band_geom, weights, filter=filter, cutoff=cutoff, out=None, views_per_block=views_per_block,
+            padding=padding,
         )
 
 

@@ -139,6 +139,9 @@ that type needs) are required; everything else has the default shown.
     rings = "auto"              # "auto" | "on" | "off": subtract the detector's fixed pattern (a flat field wrong at
                                 # some columns: rings) from every view; "auto": when it holds 10 % of the residual at
                                 # the calibrated geometry, and then calibrate again
+    roi = "off"                 # "auto" | "on" | "off": a sample wider than the field of view (region-of-interest
+                                # scan): subtract what the material outside the volume adds on average to every view;
+                                # "auto": when the nominal reconstruction shows material at the volume's sides
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -394,6 +397,7 @@ class CalibrationConfig:
     truncation: str = "auto"
     zingers: str = "auto"
     rings: str = "auto"
+    roi: str = "off"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
@@ -492,7 +496,7 @@ class Config:
         cal = self.calibration
         if stages is not None:
             keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation", "zingers",
-                                                "rings")}
+                                                "rings", "roi")}
             cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
         return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
@@ -893,6 +897,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         truncation=_choice(t.pop("truncation", d.truncation), w + "truncation", ("auto", "on", "off")),
         zingers=_choice(t.pop("zingers", d.zingers), w + "zingers", ("auto", "off")),
         rings=_choice(t.pop("rings", d.rings), w + "rings", ("auto", "on", "off")),
+        roi=_choice(t.pop("roi", d.roi), w + "roi", ("auto", "on", "off")),
         **kw,
     )
     t.finish(_CALIBRATION_KEYS)

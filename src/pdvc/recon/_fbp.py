@@ -10,7 +10,7 @@ import numpy as np
 from ..compute._scheduler import current_session
 from ..errors import GeometryError, InputTypeError, ShapeError, ShortScanError
 from ..geometry import VectorGeometry, VolumeGeometry
-from ._filters import check_filter, filter_rows, ramp_filter_response
+from ._filters import check_filter, check_padding, filter_rows, ramp_filter_response
 from ._kernels import backproject_block
 from ._weights import ScanWeights, check_center, scan_weights
 
@@ -216,11 +216,12 @@ def _cosine_weights(vec, sdd, red, jj, ii) -> np.ndarray:
 
 
 # -- the shared driver --------------------------------------------------------
-def _reconstruct(arr, vol_geom, geom, weights: ScanWeights, *, filter, cutoff, out, views_per_block):
+def _reconstruct(arr, vol_geom, geom, weights: ScanWeights, *, filter, cutoff, out, views_per_block, padding="zero"):
     session = current_session()  # a Dask cluster made current by pdvc.compute.use_scheduler: by slabs of z
     if session is not None:
         return session.reconstruct(
-            arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out, views_per_block=views_per_block
+            arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out, views_per_block=views_per_block,
+            padding=padding,
         )
     nr, nc = geom.det_shape
     cone = geom.kind == "cone"
@@ -265,7 +266,7 @@ def _reconstruct(arr, vol_geom, geom, weights: ScanWeights, *, filter, cutoff, o
             np.multiply(weighted, block, out=weighted)  # a new array: the input is never written
         else:
             weighted = block * red.astype(np.float32)
-        q = filter_rows(weighted, response, workers=workers)
+        q = filter_rows(weighted, response, workers=workers, padding=padding)
         q *= view_scale[sl, None, None].astype(np.float32)
         qt = np.ascontiguousarray(q.transpose(0, 2, 1))  # (b, n_cols, n_rows)
         backproject_block(out, qt, np.ascontiguousarray(P[sl]), np.ascontiguousarray(zinv[sl]))
@@ -285,6 +286,7 @@ def fdk(
     axis=None,
     views_per_block: int = DEFAULT_VIEWS_PER_BLOCK,
     out=None,
+    padding: str = "zero",
 ) -> np.ndarray:
     """FDK reconstruction of (near-)circular cone-beam projections with per-view vectors.
 
@@ -326,6 +328,12 @@ def fdk(
         the volume).
     out : (nz, ny, nx) float32 array, optional
         Overwritten with the result and returned.
+    padding : {"zero", "edge"}
+        How the rows are extended for the ramp filter. "zero" for an object
+        inside the field of view; "edge" carries each row's end values
+        outward (:func:`pdvc.recon._filters.filter_rows`), for an object
+        wider than the detector (a region-of-interest scan): no bright rim
+        at the edge of the field of view, much less cupping.
 
     Returns
     -------
@@ -354,8 +362,9 @@ def fdk(
     circular orbit; a uniform ball of density mu reconstructs to mu (tested
     within 2 %). The rotation axis and centre are estimated from the source
     positions unless given; ``dtheta_k`` and the Parker angles are measured
-    about them. Truncated projections (object wider than the detector,
-    half-detector scans) are not handled.
+    about them. An object wider than the detector is reconstructed inside
+    the field of view with ``padding="edge"``; half-detector (offset
+    detector) scans are not handled.
 
     Examples
     --------
@@ -373,6 +382,7 @@ def fdk(
             "fdk needs a cone-beam geometry, got geom.kind='parallel'; use pdvc.recon.fbp for parallel beam"
         )
     check_filter(filter, cutoff)
+    check_padding(padding)
     if center is not None:
         _check_center_in_front(geom, check_center(center))
     weights = scan_weights(geom, axis=axis, center=center, short_scan=short_scan)
@@ -386,7 +396,7 @@ def fdk(
     )
     return _reconstruct(
         arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out,
-        views_per_block=int(views_per_block),
+        views_per_block=int(views_per_block), padding=padding,
     )
 
 
@@ -400,6 +410,7 @@ def fbp(
     axis=None,
     views_per_block: int = DEFAULT_VIEWS_PER_BLOCK,
     out=None,
+    padding: str = "zero",
 ) -> np.ndarray:
     """Filtered back-projection of parallel-beam projections with per-view vectors.
 
@@ -410,7 +421,7 @@ def fbp(
     vol_geom : VolumeGeometry
     geom : VectorGeometry
         Parallel-beam vectors (``kind="parallel"``), at least 2 views.
-    filter, cutoff, views_per_block, out
+    filter, cutoff, views_per_block, out, padding
         As in :func:`fdk`.
     axis : (3,) array, optional
         Rotation-axis direction; default the normal of the plane spanned by
@@ -436,6 +447,7 @@ def fbp(
             "fbp needs a parallel-beam geometry, got geom.kind='cone'; use pdvc.recon.fdk for cone beam"
         )
     check_filter(filter, cutoff)
+    check_padding(padding)
     weights = scan_weights(geom, axis=axis)
     logger.info(
         "fbp: %s scan of %d views, coverage %.1f of 180 deg (each view covers its angular step)",
@@ -445,7 +457,7 @@ def fbp(
     )
     return _reconstruct(
         arr, vol_geom, geom, weights, filter=filter, cutoff=cutoff, out=out,
-        views_per_block=int(views_per_block),
+        views_per_block=int(views_per_block), padding=padding,
     )
 
 

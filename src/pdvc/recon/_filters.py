@@ -34,6 +34,16 @@ def check_filter(filter: str, cutoff: float) -> tuple[str, float]:
     return name, c
 
 
+PADDINGS = ("zero", "edge")
+
+
+def check_padding(padding: str) -> str:
+    """Validate the ramp filter's ``padding`` (``"zero"`` or ``"edge"``)."""
+    if padding not in PADDINGS:
+        raise ShapeError(f"padding must be one of {PADDINGS}, got {padding!r}")
+    return padding
+
+
 def padded_length(n_cols: int) -> int:
     """Zero-padded filtering length: the smallest power of two >= ``2 * n_cols`` (at least 64)."""
     return max(64, 1 << int(np.ceil(np.log2(2 * int(n_cols)))))
@@ -93,14 +103,35 @@ def ramp_filter_response(n_cols: int, filter: str = "ram-lak", cutoff: float = 1
     return resp * win
 
 
-def filter_rows(weighted: np.ndarray, response: np.ndarray, *, workers: int | None = None) -> np.ndarray:
-    """Convolve every detector row (last axis) with ``response``, zero padded.
+#: Pixels averaged at each end of a row for the value that ``padding="edge"`` carries outward.
+EDGE_PIXELS = 3
+
+
+def filter_rows(weighted: np.ndarray, response: np.ndarray, *, workers: int | None = None,
+                padding: str = "zero") -> np.ndarray:
+    """Convolve every detector row (last axis) with ``response``.
 
     ``weighted`` is float32 ``(..., n_cols)``; returns a new float32 array of
     the same shape. The padded length is ``2 * (len(response) - 1)``.
+    ``padding="zero"`` pads with zeros (the object lies inside the field of
+    view); ``"edge"`` carries the mean of the ``EDGE_PIXELS`` outer pixels of
+    each end outward, half of the padding each side (the padded row is
+    circular): a row cut by the detector's edge (an object wider than the
+    field of view) then has no step for the ramp filter to turn into the
+    bright rim and the cupping of a truncated reconstruction.
     """
     n = 2 * (response.shape[0] - 1)
     nc = weighted.shape[-1]
-    spec = scipy.fft.rfft(weighted, n=n, axis=-1, workers=workers)
+    if padding == "edge" and n > nc:
+        m = min(EDGE_PIXELS, nc)
+        row = np.empty(weighted.shape[:-1] + (n,), np.float32)
+        row[..., :nc] = weighted
+        half = nc + (n - nc) // 2
+        row[..., nc:half] = weighted[..., nc - m:].mean(axis=-1, keepdims=True)
+        row[..., half:] = weighted[..., :m].mean(axis=-1, keepdims=True)
+        spec = scipy.fft.rfft(row, axis=-1, workers=workers)
+    else:
+        check_padding(padding)
+        spec = scipy.fft.rfft(weighted, n=n, axis=-1, workers=workers)
     spec *= response.astype(np.float32)
     return scipy.fft.irfft(spec, n=n, axis=-1, workers=workers)[..., :nc]
