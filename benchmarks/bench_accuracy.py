@@ -56,7 +56,7 @@ never be.
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
     python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
     python benchmarks/bench_accuracy.py --quick --short-scan    # ... as cone-beam short scans (180° + the fan angle)
-    python benchmarks/bench_accuracy.py --quick --roi 1.0 --option roi='"on"'   # samples wider than the field of view
+    python benchmarks/bench_accuracy.py --quick --roi 1.0       # samples wider than the field of view
 """
 
 from __future__ import annotations
@@ -92,8 +92,9 @@ AIR = {"drift": 0.0, "zingers": 0.0, "rings": 0.0, "phase": 0.0, "hardening": 0.
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG)
 SCAN = {"half_turn": False, "short_scan": False}
-# --roi: the samples' radius in units of the volume's width n (0: the families' own, 0.36 n, inside the volume). Above
-# 0.7 n the sample is wider than the detector's field of view: a region-of-interest scan (lateral truncation)
+# --roi: the samples' radius in units of the volume's height n (0: the families' own, 0.36 n, inside the volume), on a
+# volume 1.4 n wide, as wide as the field of view. Above 0.7 n the sample is wider than the detector's field of view:
+# a region-of-interest scan (lateral truncation)
 ROI = {"radius": 0.0}
 SHORT_SCAN_CONE_DEG = 6.0
 
@@ -370,7 +371,8 @@ def run_case(c: Case) -> dict:
     geom = geometry(c, angles)
     rv, t = true_poses(c, angles)
     scan = simulate_scan(phantom(c), geom, rotvecs=rv, translations=t, i0=c.i0, seed=c.seed, supersampling=2)
-    vg = pdvc.VolumeGeometry((c.n, c.n, c.n))
+    # --roi: the volume as wide as the field of view (as a user reconstructs a region-of-interest scan)
+    vg = pdvc.VolumeGeometry((c.n, c.n, c.n) if not ROI["radius"] else (c.n, round(1.4 * c.n), round(1.4 * c.n)))
     pts = sample_points(vg, 5, fraction=0.6)
     truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
 
@@ -473,8 +475,9 @@ def header(args) -> list:
         + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
            f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else "")
-        + (f"; samples of radius {ROI['radius']:g} n, wider than the field of view of 0.7 n (--roi)"
-           if ROI["radius"] > 0.7 else f"; samples of radius {ROI['radius']:g} n (--roi)" if ROI["radius"] else ""),
+        + (f"; samples of radius {ROI['radius']:g} n, wider than the field of view of 0.7 n, on a volume 1.4 n wide "
+           "(--roi)" if ROI["radius"] > 0.7 else
+           f"; samples of radius {ROI['radius']:g} n on a volume 1.4 n wide (--roi)" if ROI["radius"] else ""),
     ]
 
 
@@ -570,8 +573,9 @@ def main(argv=None) -> int:
                     help="every case a cone-beam short scan over 180 deg + the fan angle, end views included "
                          f"(parallel cases at a {SHORT_SCAN_CONE_DEG:g} deg cone half-angle)")
     ap.add_argument("--roi", type=float, default=0.0, metavar="RADIUS",
-                    help="every sample of radius RADIUS times the volume's width (default 0: 0.36, inside the volume); "
-                         "above 0.7 it is wider than the detector: a region-of-interest scan (lateral truncation)")
+                    help="every sample of radius RADIUS times n, reconstructed on a volume 1.4 n wide, as wide as the "
+                         "field of view (default 0: radius 0.36 n, volume n wide); above 0.7 the sample is wider than "
+                         "the detector: a region-of-interest scan (lateral truncation)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import pdvc
-from pdvc.calibration import cylinder_window, outside_pattern
+from pdvc.calibration import cylinder_window, field_radius, outside_pattern
 from pdvc.geometry import fix_gauge, reprojection_error, sample_points
 from pdvc.recon import fbp, fdk
 from pdvc.simulate import EllipsoidPhantom, foam_phantom, project_analytic, simulate_scan, tilted_axis_poses
@@ -48,14 +48,14 @@ def test_cylinder_window_is_one_inside_zero_outside_and_round():
     np.testing.assert_allclose(w, w.T)  # symmetric in x and y
 
 
-def _roi_scan(phantom, i0, offset):
+def _roi_scan(phantom, i0, offset, width=32):
     n = 32
     angles = np.linspace(0, 2 * np.pi, 90, endpoint=False)
     det = (int(1.2 * n), int(1.4 * n))
     sod = (det[0] / 2) / np.tan(np.deg2rad(6.0))
     geom = pdvc.circular_cone(angles, sod=sod, odd=0.5 * sod, det_shape=det, pixel=1.5)
     rv, t = tilted_axis_poses(angles, tilt=np.deg2rad(0.5), offset=(offset, 0, 0))
-    vg = pdvc.VolumeGeometry((n, n, n))
+    vg = pdvc.VolumeGeometry((n, width, width))
     scan = simulate_scan(phantom, geom, rotvecs=rv, translations=t, i0=i0, seed=1, supersampling=2)
     truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
     pts = sample_points(vg, 5, fraction=0.6)
@@ -110,3 +110,27 @@ def test_roi_option_is_checked():
     p, geom, vg, _ = _roi_scan(_wide_cylinder(32), 2e3, 0.5)
     with pytest.raises(pdvc.calibration.CalibrationError, match="roi must be"):
         pdvc.calibrate(p, geom, vg, roi="yes")
+
+
+def test_field_radius_is_half_the_detector_at_the_axis():
+    angles = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+    vg = pdvc.VolumeGeometry((8, 32, 32))
+    assert field_radius(pdvc.parallel(angles, det_shape=(8, 40), pixel=1.0), vg) == pytest.approx(19.5)
+    cone = pdvc.circular_cone(angles, sod=100.0, odd=50.0, det_shape=(8, 40), pixel=1.5)
+    # the outer ray passes the axis at SOD sin(atan(19.5 px * 1.5 / SDD))
+    assert field_radius(cone, vg) == pytest.approx(100.0 * np.sin(np.arctan(19.5 * 1.5 / 150.0)), rel=1e-6)
+
+
+def test_roi_auto_compensates_only_a_volume_as_wide_as_the_field(caplog):
+    foam = foam_phantom(32.0, 0.8 * 32, cell_size=(0.08 * 0.36, 0.18 * 0.36), seed=3)
+    # a volume 32 wide under a field of radius ~22: the window would cut what every view sees
+    p, geom, vg, err = _roi_scan(foam, 2e4, 1.5)
+    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+        narrow = pdvc.calibrate(p, geom, vg, max_outer=2)
+    assert narrow.options["roi"].startswith("not compensated: a region-of-interest scan, but the volume is narrower")
+    assert any("inscribed radius" in r.getMessage() for r in caplog.records)
+    # the volume as wide as the detector sees: compensated by default
+    p, geom, vg, err = _roi_scan(foam, 2e4, 1.5, width=46)
+    wide = pdvc.calibrate(p, geom, vg)
+    assert wide.options["roi"].startswith("the average over the views")
+    assert err(wide.geometry) < 0.1 < err(geom)

@@ -49,7 +49,7 @@ def test_detect_truncation_reads_the_end_slices_and_the_edges():
     b = detect_truncation(blob, vg)
     assert not b.vertical and not b.lateral and "inside" in b.describe()
     w = detect_truncation(wide, vg)
-    assert w.lateral and not w.vertical and "region-of-interest" in w.describe() and "not modelled" in w.describe()
+    assert w.lateral and not w.vertical and "region-of-interest" in w.describe() and "roi = 'auto'" in w.describe()
 
 
 @pytest.mark.slow

@@ -402,12 +402,12 @@ def test_extrapolate_reaches_the_model_stage(tmp_path):
     assert [s.extrapolate for s in stages if s.name == "model"] == [True]
 
 
-def test_roi_is_read_defaults_to_off_and_reaches_calibrate(tmp_path):
+def test_roi_is_read_defaults_to_auto_and_reaches_calibrate(tmp_path):
     from pdvc._inputs import calibration_options
 
-    assert load_config(_cfg(), base_dir=tmp_path).calibration.roi == "off"
-    cfg = load_config(_cfg(calibration={"roi": "auto"}), base_dir=tmp_path)
-    assert cfg.calibration.roi == "auto"
-    assert calibration_options(cfg.calibration, (64, 64))["roi"] == "auto"
+    assert load_config(_cfg(), base_dir=tmp_path).calibration.roi == "auto"
+    cfg = load_config(_cfg(calibration={"roi": "on"}), base_dir=tmp_path)
+    assert cfg.calibration.roi == "on"
+    assert calibration_options(cfg.calibration, (64, 64))["roi"] == "on"
     with pytest.raises(ConfigError, match="roi"):
         load_config(_cfg(calibration={"roi": "yes"}), base_dir=tmp_path)

@@ -245,7 +245,7 @@ def calibrate(
     truncation: str = "auto",
     zingers: str = "auto",
     rings: str = "auto",
-    roi: str = "off",
+    roi: str = "auto",
     noise_variance: Optional[float] = None,
     times=None,
     center=None,
@@ -323,10 +323,11 @@ def calibrate(
         same padding; a scan whose nominal fit is then already at the noise
         (chi <= ``ROI_NOMINAL_CHI``) returns the nominal geometry with
         ``Status.UNDETERMINED``. ``"auto"``: when the nominal reconstruction
-        shows material at the volume's sides (:func:`detect_truncation`).
-        ``"off"`` (the default: held out, the average estimated at the
-        starting geometry pins part of an axis offset and tilt there;
-        ``docs/method.md`` §5.17).
+        shows material at the volume's sides (:func:`detect_truncation`)
+        and the volume is about as wide as the field of view (its inscribed
+        radius at least ``ROI_FIELD_COVER`` of the field's): a narrower
+        volume leaves out material that every view sees (``docs/method.md``
+        §5.17).
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -380,7 +381,7 @@ def calibrate(
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     weights, trunc = _truncation(truncation, weights, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
-    if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral):
+    if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
     def state_checkpoint(state):
@@ -400,7 +401,7 @@ def calibrate(
     options = dict(
         recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
-        roi=_roi_text(roi, p_out is not None),
+        roi=_roi_text(roi, p_out is not None, trunc),
         background=_background_text(drv), zingers=found_zingers.describe() if found_zingers is not None else "not checked",
         rings=found_rings.describe() if found_rings is not None else (
             "not removed (rings = 'off')" if rings == "off" else "not removed: no fixed pattern of the detector stood out "
@@ -584,6 +585,29 @@ def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
 ROI_NOMINAL_CHI = 1.1
 
 
+#: roi = "auto" compensates a region-of-interest scan only when the volume's inscribed radius is at least this
+#: fraction of the field of view's radius: material seen in every view but cut off by the window (a volume narrower
+#: than the field) is structure the model cannot explain (bench_accuracy.py --quick --roi 1.0, held out: with the
+#: volume as wide as the field, median 0.65 -> 0.48 px and foams 0.12-0.42 -> 0.023-0.089 px; with a volume of
+#: 0.71 of the field, a granular scan 0.15 -> 1.26 px; docs/method.md §5.17)
+ROI_FIELD_COVER = 0.9
+
+
+def _covers_field(geom, vol_geom) -> bool:
+    """Whether the volume's inscribed cylinder reaches ``ROI_FIELD_COVER`` of the field of view (and says so if not)."""
+    from ._truncation import field_radius
+
+    inscribed = 0.5 * min(vol_geom.extent_xyz[0], vol_geom.extent_xyz[1])
+    field = field_radius(geom, vol_geom)
+    if inscribed >= ROI_FIELD_COVER * field:
+        return True
+    log.warning("roi: a region-of-interest scan, not compensated: the volume's inscribed radius (%.4g) is %.0f%% of the "
+                "field of view's (%.4g); reconstruct the whole field (a volume as wide as the detector sees, the "
+                "default of a config without [volume]) for roi = 'auto' to compensate it, or set roi = 'on'",
+                inscribed, 100 * inscribed / field, field)
+    return False
+
+
 def _roi(p, geom, vol_geom, poses, timings):
     """A region-of-interest scan: the data with the outside's average subtracted, and its nominal reconstruction."""
     from ._truncation import outside_pattern
@@ -598,13 +622,17 @@ def _roi(p, geom, vol_geom, poses, timings):
     return q, reconstruct(q, vol_geom, geom)
 
 
-def _roi_text(mode: str, done: bool) -> str:
+def _roi_text(mode: str, done: bool, trunc) -> str:
     if done:
         return ("the average over the views of what the material outside the volume's inscribed cylinder adds to a "
                 "ray was subtracted (a region-of-interest scan); the output volumes are reconstructed from the data "
                 "given, the rows' edge values carried outward for the ramp filter")
-    return ("not compensated (roi = 'off')" if mode == "off"
-            else "not compensated: the sample lies within the volume's sides")
+    if mode == "off":
+        return "not compensated (roi = 'off')"
+    if trunc is not None and trunc.lateral:
+        return ("not compensated: a region-of-interest scan, but the volume is narrower than the field of view "
+                "(roi = 'on' forces it)")
+    return "not compensated: the sample lies within the volume's sides"
 
 
 def _truncation(mode, weights, geom, vol_geom, vol_initial):

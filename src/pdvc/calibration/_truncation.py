@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import InputTypeError
 from ..geometry import VectorGeometry, VolumeGeometry
 
-__all__ = ["truncation_weights", "detect_truncation", "Truncation", "outside_pattern", "cylinder_window"]
+__all__ = ["truncation_weights", "detect_truncation", "Truncation", "outside_pattern", "cylinder_window", "field_radius"]
 
 
 def _rays(geom: VectorGeometry, chunk: int):
@@ -115,8 +115,8 @@ class Truncation:
         if self.lateral:
             parts.append(
                 f"the sample reaches the sides of the volume (edge ring holds {100 * self.edge_ratio:.0f}% of the centre): "
-                "a region-of-interest scan; the material outside the volume is not modelled, expect a less accurate "
-                "calibration (docs/method.md, limits)"
+                "a region-of-interest scan; roi = 'auto' subtracts the average of what the material outside the "
+                "volume adds when the volume is as wide as the field of view (docs/method.md §5.17)"
             )
         return "; ".join(parts) if parts else "the sample lies inside the volume"
 
@@ -187,3 +187,19 @@ def outside_pattern(projections, vol_geom: VolumeGeometry, geom: VectorGeometry,
     for k0 in range(0, geom.n_views, 64):
         out += (np.asarray(projections[k0:k0 + 64], np.float64) - q[k0:k0 + 64]).sum(axis=0)
     return (out / geom.n_views).astype(np.float32)
+
+
+def field_radius(geom: VectorGeometry, vol_geom: VolumeGeometry) -> float:
+    """Radius of the field of view about the volume's z axis: the median over the views of the distance, in the xy
+    plane, from that axis to the nearer of the rays through the two outer columns of the middle row (length units)."""
+    nr, nc = geom.det_shape
+    mid = (nr - 1) / 2
+    c = np.asarray(vol_geom.offset, float)
+    out = []
+    for j in (0, nc - 1):
+        pix = geom.det_center + (j - (nc - 1) / 2) * geom.u + (mid - (nr - 1) / 2) * geom.v
+        a, d = (geom.src, pix - geom.src) if geom.kind == "cone" else (pix, geom.ray)
+        norm = np.hypot(d[:, 0], d[:, 1])
+        dist = np.abs(d[:, 0] * (c[1] - a[:, 1]) - d[:, 1] * (c[0] - a[:, 0])) / np.where(norm > 0, norm, np.inf)
+        out.append(dist)
+    return float(np.median(np.minimum(*out)))

@@ -139,9 +139,10 @@ that type needs) are required; everything else has the default shown.
     rings = "auto"              # "auto" | "on" | "off": subtract the detector's fixed pattern (a flat field wrong at
                                 # some columns: rings) from every view; "auto": when it holds 10 % of the residual at
                                 # the calibrated geometry, and then calibrate again
-    roi = "off"                 # "auto" | "on" | "off": a sample wider than the field of view (region-of-interest
+    roi = "auto"                # "auto" | "on" | "off": a sample wider than the field of view (region-of-interest
                                 # scan): subtract what the material outside the volume adds on average to every view;
-                                # "auto": when the nominal reconstruction shows material at the volume's sides
+                                # "auto": when the nominal reconstruction shows material at the volume's sides and
+                                # the volume is about as wide as the field of view
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -397,7 +398,7 @@ class CalibrationConfig:
     truncation: str = "auto"
     zingers: str = "auto"
     rings: str = "auto"
-    roi: str = "off"
+    roi: str = "auto"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
