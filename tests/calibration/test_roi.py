@@ -134,3 +134,22 @@ def test_roi_auto_compensates_only_a_volume_as_wide_as_the_field(caplog):
     wide = pdvc.calibrate(p, geom, vg)
     assert wide.options["roi"].startswith("the average over the views")
     assert err(wide.geometry) < 0.1 < err(geom)
+
+
+def test_inspect_says_whether_roi_auto_compensates(tmp_path):
+    from pdvc._inputs import inspect_scan
+    from pdvc.simulate import simulate_scan
+
+    angles = np.linspace(0, np.pi, 60, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(8, 40), pixel=1.0)
+    foam = foam_phantom(40.0, 30.0, cell_size=(0.05, 0.1), seed=2)
+    p = simulate_scan(foam, geom, i0=2e4, seed=1, supersampling=1).projections
+    np.save(tmp_path / "p.npy", p)
+    base = ('[data]\npath = "p.npy"\n[geometry]\ntype = "parallel"\npixel = 1.0\n'
+            'angles = { start = 0, stop = 180, count = 60 }\n')
+    (tmp_path / "wide.toml").write_text(base)  # the default volume: as wide as the detector
+    (tmp_path / "narrow.toml").write_text(base + "[volume]\nshape = [8, 28, 28]\n")
+    wide = "\n".join(inspect_scan(tmp_path / "wide.toml")[0])
+    narrow = "\n".join(inspect_scan(tmp_path / "narrow.toml")[0])
+    assert "region-of-interest scan" in wide and "roi = 'auto' compensates the scan" in wide
+    assert "roi = 'auto' needs 90%" in narrow and "leaves it alone" in narrow
