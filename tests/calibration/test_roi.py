@@ -153,3 +153,22 @@ def test_inspect_says_whether_roi_auto_compensates(tmp_path):
     narrow = "\n".join(inspect_scan(tmp_path / "narrow.toml")[0])
     assert "region-of-interest scan" in wide and "roi = 'auto' compensates the scan" in wide
     assert "roi = 'auto' needs 90%" in narrow and "leaves it alone" in narrow
+
+
+def test_cross_validation_prefers_the_true_geometry_of_a_region_of_interest_scan():
+    from pdvc.calibration._pipeline import cross_validated_rss, roi_cross_validated_rss
+
+    n = 32
+    angles = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(n, 46), pixel=1.0)
+    rv, t = tilted_axis_poses(angles, tilt=0.0, offset=(1.0, 0, 0))
+    foam = foam_phantom(32.0, 0.8 * n, cell_size=(0.08 * 0.36, 0.18 * 0.36), seed=3)
+    p = simulate_scan(foam, geom, rotvecs=rv, translations=t, i0=2e4, seed=1, supersampling=2).projections
+    vg = pdvc.VolumeGeometry((n, 46, 46))
+    truth = geom.apply_poses(rv, t)
+    nominal, true = roi_cross_validated_rss(p, vg, geom), roi_cross_validated_rss(p, vg, truth)
+    assert true < 0.9 * nominal
+    # without the outside's average the prediction is far worse at either geometry
+    assert cross_validated_rss(p, vg, truth) > 2 * true
+    w = np.ones(p.shape[1:], np.float32)
+    assert roi_cross_validated_rss(p, vg, truth, w) == pytest.approx(true, rel=1e-5)

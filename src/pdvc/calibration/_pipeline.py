@@ -322,7 +322,9 @@ def calibrate(
         the final volumes are reconstructed from the data given, with the
         same padding; a scan whose nominal fit is then already at the noise
         (chi <= ``ROI_NOMINAL_CHI``) returns the nominal geometry with
-        ``Status.UNDETERMINED``. ``"auto"``: when the nominal reconstruction
+        ``Status.UNDETERMINED``, and one whose calibrated geometry predicts
+        views it was not reconstructed from worse than the nominal one
+        (:func:`roi_cross_validated_rss`) with ``WORSE_THAN_NOMINAL``. ``"auto"``: when the nominal reconstruction
         shows material at the volume's sides (:func:`detect_truncation`)
         and the volume is about as wide as the field of view (its inscribed
         radius at least ``ROI_FIELD_COVER`` of the field's): a narrower
@@ -593,6 +595,32 @@ ROI_NOMINAL_CHI = 1.1
 ROI_FIELD_COVER = 0.9
 
 
+def cross_validated_rss(p, vol_geom: VolumeGeometry, geom: VectorGeometry, weights=None) -> float:
+    """How well a geometry predicts views it was not reconstructed from: FDK/FBP from the even views, the odd views
+    predicted (and the other way round), each prediction scaled by least squares; the weighted residual sum of squares.
+
+    A geometry that fits the data better only because the reconstruction adapts to it (a model that leaves
+    structure out) predicts the views it has not seen no better.
+    """
+    w = None if weights is None else np.asarray(weights, np.float32)
+    total = 0.0
+    for a, b in ((0, 1), (1, 0)):
+        q = forward(reconstruct(p[a::2], vol_geom, geom[a::2]), vol_geom, geom[b::2])
+        s = np.asarray(p[b::2], np.float32)
+        wb = 1.0 if w is None else (w[b::2] if w.ndim == 3 and w.shape[0] == geom.n_views else w)
+        k = float(np.sum(wb * q * s, dtype=np.float64) / max(float(np.sum(wb * q * q, dtype=np.float64)), 1e-300))
+        total += float(np.sum(wb * (s - k * q) ** 2, dtype=np.float64))
+    return total
+
+
+def roi_cross_validated_rss(p, vol_geom: VolumeGeometry, geom: VectorGeometry, weights=None) -> float:
+    """:func:`cross_validated_rss` of a region-of-interest scan ``p`` with the outside's average estimated at ``geom``
+    itself (:func:`outside_pattern`): an average taken at one geometry favours that geometry."""
+    from ._truncation import outside_pattern
+
+    return cross_validated_rss(p - outside_pattern(p, vol_geom, geom)[None], vol_geom, geom, weights)
+
+
 def _covers_field(geom, vol_geom) -> bool:
     """Whether the volume's inscribed cylinder reaches ``ROI_FIELD_COVER`` of the field of view (and says so if not)."""
     from ._truncation import field_radius
@@ -776,6 +804,20 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         )
         log.warning(message)
         status = Status.WORSE_THAN_NOMINAL
+    elif p_out is not None:
+        # a region-of-interest scan: what the model leaves out can make a wrong geometry fit better (rods
+        # wider than the field: SNR up, the truth farther); judge both by how well the views they were not
+        # reconstructed from are predicted (docs/method.md §5.17)
+        cv_nominal, cv_calibrated = (roi_cross_validated_rss(p_out, vol_geom, g, weights) for g in (geom, calibrated))
+        log.info("roi: cross-validated residual (half the views reconstructed, the other half predicted): nominal "
+                 "%.6g, calibrated %.6g", cv_nominal, cv_calibrated)
+        if cv_calibrated > cv_nominal:
+            rejected = calibrated
+            message = (f"{Status.WORSE_THAN_NOMINAL.message} (region-of-interest scan: reconstructed from half the views, "
+                       f"the calibrated geometry predicts the other half worse than the nominal one, residual "
+                       f"x{cv_calibrated / cv_nominal:.4f}; the run itself ended with: {message})")
+            log.warning(message)
+            status = Status.WORSE_THAN_NOMINAL
     if rejected is not None:
         poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
         diagnoses = (diagnoses[0], diagnoses[0])
