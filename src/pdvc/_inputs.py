@@ -369,13 +369,13 @@ def inspect_scan(config) -> tuple[list, list]:
     frac = check_coverage(g, vg)
     if frac < 0.5:
         problems.append(f"the volume box projects onto the detector for only {100 * frac:.0f}% of its extent at the worst view")
-    from .calibration import detect_truncation, field_radius, reconstruct
+    from .calibration import detect_truncation, field_cover, reconstruct
     from .calibration._pipeline import ROI_FIELD_COVER
 
     trunc = detect_truncation(reconstruct(p, vg, g), vg)  # read off the nominal reconstruction
     lines.append(f"sample and volume: {trunc.describe()}")
     if trunc.lateral:
-        cover = 0.5 * min(vg.extent_xyz[0], vg.extent_xyz[1]) / field_radius(g, vg)
+        cover = field_cover(g, vg)
         lines.append(
             f"region of interest: the volume's inscribed radius is {100 * cover:.0f}% of the field of view's; "
             + ("roi = 'auto' compensates the scan" if cover >= ROI_FIELD_COVER else

@@ -23,7 +23,15 @@ from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views,
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
-from ._truncation import Truncation, cylinder_window, detect_truncation, field_radius, outside_pattern, truncation_weights
+from ._truncation import (
+    Truncation,
+    cylinder_window,
+    detect_truncation,
+    field_cover,
+    field_radius,
+    outside_pattern,
+    truncation_weights,
+)
 from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages, short_scan_reconstruction
 from ._select import MIN_MODEL_GAIN, MODELS, ModelChoice, compare_models
 from ._stages import (
@@ -83,6 +91,7 @@ __all__ = [
     "outside_pattern",
     "cylinder_window",
     "field_radius",
+    "field_cover",
     "Truncation",
     "diagnose_residual",
     "ResidualDiagnosis",

@@ -324,8 +324,9 @@ def calibrate(
         (chi <= ``ROI_NOMINAL_CHI``) returns the nominal geometry with
         ``Status.UNDETERMINED``, and one whose calibrated geometry predicts
         views it was not reconstructed from worse than the nominal one
-        (:func:`roi_cross_validated_rss`) with ``WORSE_THAN_NOMINAL``. ``"auto"``: when the nominal reconstruction
-        shows material at the volume's sides (:func:`detect_truncation`)
+        (:func:`roi_cross_validated_rss`) with ``WORSE_THAN_NOMINAL``.
+        ``"auto"``: when the nominal reconstruction shows material at the
+        volume's sides (:func:`detect_truncation`)
         and the volume is about as wide as the field of view (its inscribed
         radius at least ``ROI_FIELD_COVER`` of the field's): a narrower
         volume leaves out material that every view sees (``docs/method.md``
@@ -602,12 +603,12 @@ def cross_validated_rss(p, vol_geom: VolumeGeometry, geom: VectorGeometry, weigh
     A geometry that fits the data better only because the reconstruction adapts to it (a model that leaves
     structure out) predicts the views it has not seen no better.
     """
-    w = None if weights is None else np.asarray(weights, np.float32)
+    w = np.broadcast_to(np.float32(1.0) if weights is None else np.asarray(weights, np.float32), p.shape)
     total = 0.0
     for a, b in ((0, 1), (1, 0)):
         q = forward(reconstruct(p[a::2], vol_geom, geom[a::2]), vol_geom, geom[b::2])
         s = np.asarray(p[b::2], np.float32)
-        wb = 1.0 if w is None else (w[b::2] if w.ndim == 3 and w.shape[0] == geom.n_views else w)
+        wb = w[b::2]
         k = float(np.sum(wb * q * s, dtype=np.float64) / max(float(np.sum(wb * q * q, dtype=np.float64)), 1e-300))
         total += float(np.sum(wb * (s - k * q) ** 2, dtype=np.float64))
     return total
@@ -623,16 +624,14 @@ def roi_cross_validated_rss(p, vol_geom: VolumeGeometry, geom: VectorGeometry, w
 
 def _covers_field(geom, vol_geom) -> bool:
     """Whether the volume's inscribed cylinder reaches ``ROI_FIELD_COVER`` of the field of view (and says so if not)."""
-    from ._truncation import field_radius
+    from ._truncation import field_cover
 
-    inscribed = 0.5 * min(vol_geom.extent_xyz[0], vol_geom.extent_xyz[1])
-    field = field_radius(geom, vol_geom)
-    if inscribed >= ROI_FIELD_COVER * field:
+    cover = field_cover(geom, vol_geom)
+    if cover >= ROI_FIELD_COVER:
         return True
-    log.warning("roi: a region-of-interest scan, not compensated: the volume's inscribed radius (%.4g) is %.0f%% of the "
-                "field of view's (%.4g); reconstruct the whole field (a volume as wide as the detector sees, the "
-                "default of a config without [volume]) for roi = 'auto' to compensate it, or set roi = 'on'",
-                inscribed, 100 * inscribed / field, field)
+    log.warning("roi: a region-of-interest scan, not compensated: the volume's inscribed radius is %.0f%% of the field "
+                "of view's; reconstruct the whole field (a volume as wide as the detector sees, the default of a config "
+                "without [volume]) for roi = 'auto' to compensate it, or set roi = 'on'", 100 * cover)
     return False
 
 

@@ -20,7 +20,8 @@ import numpy as np
 from ..errors import InputTypeError
 from ..geometry import VectorGeometry, VolumeGeometry
 
-__all__ = ["truncation_weights", "detect_truncation", "Truncation", "outside_pattern", "cylinder_window", "field_radius"]
+__all__ = ["truncation_weights", "detect_truncation", "Truncation", "outside_pattern", "cylinder_window", "field_radius",
+           "field_cover"]
 
 
 def _rays(geom: VectorGeometry, chunk: int):
@@ -203,3 +204,8 @@ def field_radius(geom: VectorGeometry, vol_geom: VolumeGeometry) -> float:
         dist = np.abs(d[:, 0] * (c[1] - a[:, 1]) - d[:, 1] * (c[0] - a[:, 0])) / np.where(norm > 0, norm, np.inf)
         out.append(dist)
     return float(np.median(np.minimum(*out)))
+
+
+def field_cover(geom: VectorGeometry, vol_geom: VolumeGeometry) -> float:
+    """The volume's inscribed radius (in x and y) over the field of view's (:func:`field_radius`)."""
+    return 0.5 * min(vol_geom.extent_xyz[0], vol_geom.extent_xyz[1]) / field_radius(geom, vol_geom)
