@@ -58,8 +58,9 @@ adjoint computes the targets and weights of a chunk of samples in a
 vectorised loop and adds them in a scalar one. And a slab accumulates in a
 private buffer whose z-rows are padded by a cache line, then adds it to the
 volume: in the volume, the two z-rows of a sample's four targets lie a
-multiple of 4 KiB apart, and each load that followed a store to the other
-row stalled.
+multiple of 4 KiB apart, and a load that followed a store to the other row
+stalled (most likely on the processor's 4K-aliasing check; the padding
+removes the cost).
 """
 
 from __future__ import annotations
@@ -87,8 +88,8 @@ SCATTER_CHUNK = 32
 # The adjoint accumulates each slab in a private buffer whose z-rows are this
 # many floats (one cache line) longer than a volume plane: in the volume
 # itself two z-rows lie a multiple of 4 KiB apart (256³: 256 KiB), and a
-# load from one row right after a store to the other stalled on the
-# processor's 4K-aliasing check (256³ x 60 views, Intel Xeon, 2 threads:
+# load from one row right after a store to the other stalled, most likely on
+# the processor's 4K-aliasing check (256³ x 60 views, Intel Xeon, 2 threads:
 # 1.61x -> 1.37x the forward's time).
 ROW_PAD = 16
 
