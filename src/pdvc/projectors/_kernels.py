@@ -473,9 +473,16 @@ def _plane_range(sa, sc, rc, lo, hi, ilo, ihi):
     return max(a, ilo), min(b, ihi)
 
 
-@njit(inline="always")
+@njit(cache=True, fastmath=_FAST)
 def _adjoint_slab(proj, s, slab_edges, geo, cone, nx, ny, nz, spx, spy, spz, out):
-    """Scatter into ``out`` every sample whose z-cell belongs to slab ``s``."""
+    """Scatter into ``out`` every sample whose z-cell belongs to slab ``s``.
+
+    Compiled on its own, not inlined into the parallel loop: numba hoists
+    the allocations of a parallel loop's body out of it, to be reused by all
+    the iterations a thread runs, and this function's buffers depend on the
+    slab (sized for a thread's first slab, a larger one later would write
+    past the end).
+    """
     n_views, n_rows, n_cols = proj.shape
     n_slabs = slab_edges.shape[0] - 1
     plane = nx * ny
