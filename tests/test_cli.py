@@ -68,7 +68,7 @@ def test_cli_simulate_inspect_calibrate_reconstruct(simulated, tmp_path, capsys)
     assert e_cal < 0.25 * e_nom, (e_cal, e_nom)
     html = (out / "report.html").read_text()
     assert "snr_per_view.png" in html and "entropy" in html
-    assert "zingers, hot and dead pixels" in html
+    assert "zingers, hot and dead pixels" in html and "air level (what the rays that miss the sample read)" in html
     assert ("before the background per view" in html) == ("a plane per view fitted" in html)
     assert "background per view" in html and "background = &#x27;auto&#x27;" in html.replace("&#39;", "&#x27;")
     # the written config reruns: it is the fully resolved one
@@ -150,7 +150,8 @@ def test_a_resumed_run_keeps_the_background_its_first_round_decided(simulated, t
         if info.get("event") == "round" and info.get("iteration") == 0:
             raise KeyboardInterrupt
 
-    opts = dict(scales=(1,), max_outer=3, tol_px=1e-9, oversample=1)
+    # air = "off": the engine's background decides here (air = "auto" would subtract the drift before the rounds)
+    opts = dict(scales=(1,), max_outer=3, tol_px=1e-9, oversample=1, air="off")
     with pytest.raises(KeyboardInterrupt), caplog.at_level("INFO", logger="pdvc.calibration"):
         pdvc.calibrate(drifted, geom, vg, out_dir=out, progress=stop_after_first_round, **opts)
     assert "measured again" in caplog.text  # decided in the first round

@@ -66,7 +66,7 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -
         stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **params)
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
-        truncation=cal.truncation, zingers=cal.zingers, rings=cal.rings, roi=cal.roi,
+        truncation=cal.truncation, zingers=cal.zingers, rings=cal.rings, roi=cal.roi, air=cal.air,
     )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)
@@ -369,10 +369,10 @@ def inspect_scan(config) -> tuple[list, list]:
     frac = check_coverage(g, vg)
     if frac < 0.5:
         problems.append(f"the volume box projects onto the detector for only {100 * frac:.0f}% of its extent at the worst view")
-    from .calibration import detect_truncation, field_cover, reconstruct
+    from .calibration import detect_scan_truncation, field_cover
     from .calibration._pipeline import ROI_FIELD_COVER
 
-    trunc = detect_truncation(reconstruct(p, vg, g), vg)  # read off the nominal reconstruction
+    trunc, _ = detect_scan_truncation(p, vg, g)  # read off the nominal reconstruction, an air level removed
     lines.append(f"sample and volume: {trunc.describe()}")
     if trunc.lateral:
         cover = field_cover(g, vg)

@@ -322,7 +322,8 @@ def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log
     from tests.correlation.cases import make_case
 
     c = make_case("offset", n=24, n_views=48)
-    kw = dict(max_outer=2, fixed=("rx", "ry", "rz"))
+    # air = "off": the engine's background at work (air = "auto", the default, subtracts such a drift first: below)
+    kw = dict(max_outer=2, fixed=("rx", "ry", "rz"), air="off")
     clean = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, **kw)
     assert all(h["background"] == -1 for h in clean.history) and clean.history[0]["offset_sigma"] < 0.1
     assert clean.options["background"].startswith("none")
@@ -341,6 +342,9 @@ def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log
         off = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, background=-1, **kw)
     assert all(h["background"] == -1 for h in off.history)
     assert "background = 0" in caplog.text
+    # the default: the air level the views share is subtracted before the rounds; its drift is left to the background
+    default = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, max_outer=2, fixed=("rx", "ry", "rz"))
+    assert default.options["air"].startswith("subtracted") and all(h["background"] == 1 for h in default.history)
 
 
 def test_nonneg_ls_correlation_volume_by_spline_is_the_upsampled_stage_fit():

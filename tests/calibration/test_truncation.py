@@ -105,3 +105,65 @@ def test_jolt_views_finds_local_dips_not_smooth_trends():
     dipped[90] -= 3.0
     assert set(jolt_views(dipped).tolist()) == {40, 41, 90}
     assert jolt_views(smooth[:5]).size == 0
+
+
+def _air_scan(air):
+    """A 180-degree parallel scan of a sample well inside its volume, with an air level (offset + column profile)."""
+    from pdvc.simulate import EllipsoidPhantom, simulate_scan
+
+    n = 32
+    angles = np.linspace(0, np.pi, 60, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(n, n), pixel=1.0)
+    vg = pdvc.VolumeGeometry((n, n, n))
+    blob = EllipsoidPhantom(density=[0.05, 0.03], center=[(0, 0, 0), (3, 2, 3)], semi_axes=[(9, 7, 10), (3, 3, 3)])
+    p = simulate_scan(blob, geom, i0=2e4, seed=1, supersampling=1).projections
+    u = np.linspace(-1, 1, n)
+    return p + np.float32(air) * (1 + 0.1 * u)[None, None, :].astype(np.float32), geom, vg
+
+
+def test_an_air_level_does_not_make_a_sample_inside_the_volume_look_like_a_region_of_interest_scan():
+    # an air level of 0.37 (a flat field that does not match, as on the synchrotron scan of issue #10): every ray
+    # reads it, and FBP turns it into a bright rim at the edge of the field
+    from pdvc.calibration import detect_scan_truncation
+    from pdvc.recon import fbp
+
+    p, geom, vg = _air_scan(0.37)
+    assert detect_truncation(fbp(p, vg, geom), vg).lateral  # what the test read before: a false ROI scan
+    found, air = detect_scan_truncation(p, vg, geom)
+    assert air.significant and air.level == pytest.approx(0.37, abs=0.02)
+    assert not found.lateral and not found.vertical
+    # the same scan without the air level: nothing to remove, the same verdict
+    p0, geom, vg = _air_scan(0.0)
+    clean, air0 = detect_scan_truncation(p0, vg, geom)
+    assert not air0.significant and not clean.lateral and not clean.vertical
+
+
+def test_calibrate_subtracts_an_air_level_and_reconstructs_without_its_rim():
+    # the same blob over a full turn (FBP volumes) with an air level of 0.3 and a profile across the columns:
+    # air = "auto" (the default) measures it, subtracts it and says so; the data given are not modified; the final
+    # volume has no bright rim at the edge of the field (air = "off" keeps it), and both reach the same geometry
+    from pdvc.calibration._truncation import detect_truncation
+    from pdvc.simulate import EllipsoidPhantom, simulate_scan
+
+    n = 32
+    angles = np.linspace(0, 2 * np.pi, 72, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(n, n), pixel=1.0)
+    vg = pdvc.VolumeGeometry((n, n, n))
+    blob = EllipsoidPhantom(density=[0.05, 0.03], center=[(0, 0, 0), (3, 2, 3)], semi_axes=[(9, 7, 10), (3, 3, 3)])
+    p = simulate_scan(blob, geom, i0=2e4, seed=1, supersampling=1).projections
+    u = np.linspace(-1, 1, n)
+    p_air = p + np.float32(0.3) * (1 + 0.1 * u)[None, None, :].astype(np.float32)
+    given = p_air.copy()
+    kw = dict(max_outer=2, zingers="off", rings="off")
+    auto = pdvc.calibrate(p_air, geom, vg, **kw)
+    np.testing.assert_array_equal(p_air, given)
+    assert auto.options["air"].startswith("subtracted") and "air level 0.3" in auto.options["air"]
+    off = pdvc.calibrate(p_air, geom, vg, air="off", **kw)
+    assert off.options["air"] == "not checked (air = 'off')"
+    assert detect_truncation(off.volume, vg).lateral and not detect_truncation(auto.volume, vg).lateral
+    clean = pdvc.calibrate(p, geom, vg, **kw)
+    assert clean.options["air"].startswith("left as it is")
+    pts = pdvc.geometry.sample_points(vg, 3, fraction=0.6)
+    assert pdvc.geometry.reprojection_error(auto.geometry, clean.geometry, pts).rms < 0.05
+    with pytest.raises(pdvc.calibration.CalibrationError, match="air must be"):
+        pdvc.calibrate(p, geom, vg, air="on")

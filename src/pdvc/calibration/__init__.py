@@ -26,6 +26,7 @@ from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._truncation import (
     Truncation,
     cylinder_window,
+    detect_scan_truncation,
     detect_truncation,
     field_cover,
     field_radius,
@@ -87,6 +88,7 @@ __all__ = [
     "estimate_axis_offset",
     "offset_poses",
     "truncation_weights",
+    "detect_scan_truncation",
     "detect_truncation",
     "outside_pattern",
     "cylinder_window",

@@ -246,6 +246,7 @@ def calibrate(
     zingers: str = "auto",
     rings: str = "auto",
     roi: str = "auto",
+    air: str = "auto",
     noise_variance: Optional[float] = None,
     times=None,
     center=None,
@@ -331,6 +332,18 @@ def calibrate(
         radius at least ``ROI_FIELD_COVER`` of the field's): a narrower
         volume leaves out material that every view sees (``docs/method.md``
         §5.17).
+    air : {"auto", "off"}
+        What the rays that miss the sample read: 0 when the flat field
+        matches. A flat field that does not leaves an air level, an offset
+        per view and a profile across the columns
+        (:func:`pdvc.io.estimate_air`), on every ray: the reconstructions
+        take it for material (FBP turns it into a bright rim at the edge of
+        the field) and the calibration for motion. ``"auto"``: when it is
+        measurably off 0 (``AirEstimate.significant``), subtract the fitted
+        air (:meth:`pdvc.io.AirEstimate.background`) and calibrate and
+        reconstruct on that copy; a sample that covers the detector has no
+        air to measure and is left as it is. ``"off"``: take the data as
+        they are. The projections given are not modified.
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -352,7 +365,8 @@ def calibrate(
     """
     t_start = time.perf_counter()
     given = dict(recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, init=init,
-                 fix_scale=fix_scale, weights=weights, truncation=truncation, zingers=zingers, roi=roi, noise_variance=noise_variance,
+                 fix_scale=fix_scale, weights=weights, truncation=truncation, zingers=zingers, roi=roi, air=air,
+                 noise_variance=noise_variance,
                  times=times, center=center, backend=backend, initial_poses=initial_poses, checkpoint=checkpoint,
                  progress=progress, **model)
     p = _validate(projections, geom, vol_geom, weights)
@@ -366,6 +380,8 @@ def calibrate(
         raise CalibrationError(f"rings must be 'auto', 'on' or 'off', got {rings!r}")
     if roi not in ("auto", "on", "off"):
         raise CalibrationError(f"roi must be 'auto', 'on' or 'off', got {roi!r}")
+    if air not in ("auto", "off"):
+        raise CalibrationError(f"air must be 'auto' or 'off', got {air!r}")
     if resume and resume.get("rings") == "on":  # the run being resumed had decided to remove them
         rings = "on"
     model, short_scan = short_scan_reconstruction(geom, stages, **model)
@@ -376,13 +392,14 @@ def calibrate(
         short_scan = short_scan_reconstruction(geom)[1]  # stages resolved from a config by the same rule: say why
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
+    p, air_text = _air(air, p, timings)  # before the coarse initialisation: a column profile biases opposite views
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings)
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
     emit(dict(event="reconstruct", what="nominal"))
     vol_initial = reconstruct(p, vol_geom, geom)
     p, vol_initial, found_zingers = _zingers(zingers, p, vol_geom, geom, vol_initial, timings, poses)
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
-    weights, trunc = _truncation(truncation, weights, geom, vol_geom, vol_initial)
+    weights, trunc = _truncation(truncation, weights, p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
@@ -404,7 +421,7 @@ def calibrate(
     options = dict(
         recipe=recipe, stages=[_stage_text(s) for s in stage_list], init=init, fix_scale=bool(fix_scale),
         truncation=truncation, truncation_found=trunc.describe() if trunc is not None else "not checked",
-        roi=_roi_text(roi, p_out is not None, trunc),
+        roi=_roi_text(roi, p_out is not None, trunc), air=air_text,
         background=_background_text(drv), zingers=found_zingers.describe() if found_zingers is not None else "not checked",
         rings=found_rings.describe() if found_rings is not None else (
             "not removed (rings = 'off')" if rings == "off" else "not removed: no fixed pattern of the detector stood out "
@@ -662,11 +679,41 @@ def _roi_text(mode: str, done: bool, trunc) -> str:
     return "not compensated: the sample lies within the volume's sides"
 
 
-def _truncation(mode, weights, geom, vol_geom, vol_initial):
-    """The detector weights with the truncated rays dropped when ``mode`` says so (and what was found)."""
-    from ._truncation import detect_truncation, truncation_weights
+def _air(mode, p, timings):
+    """The data with a measured air level subtracted when ``mode`` says so, and what was done, in words."""
+    if mode == "off":
+        return p, "not checked (air = 'off')"
+    from ..io._preprocess import subtract_background
+    from ._truncation import air_to_subtract, measured_air
 
-    found = detect_truncation(vol_initial, vol_geom)
+    t0 = time.perf_counter()
+    est = measured_air(p)
+    if air_to_subtract(est, p):
+        # the part the views share: what a reconstruction takes for material. What varies from view to view (a
+        # drift) is left to the background fitted with the motion (Stage.background), which also takes a plane
+        p = subtract_background(p, np.broadcast_to(est.fitted[None, :], (p.shape[0], est.fitted.size)))
+        text = (f"subtracted (the level and the degree-{est.degree} column profile the views share; what varies from "
+                f"view to view is left to the background per view): {est.summary()}")
+        log.warning("air: the rays that miss the sample do not read 0 (a flat field that does not match): %s", text)
+    elif est.found and est.significant:
+        text = f"left as it is (what looks like air is not flat or covers the detector: a sample wider than the field?): {est.summary()}"
+        log.info("air: %s", text)
+    elif est.found:
+        text = f"left as it is (within the noise of 0): {est.summary()}"
+        log.info("air: %s", text)
+    else:
+        text = est.summary()
+    timings["air"] = time.perf_counter() - t0
+    return p, text
+
+
+def _truncation(mode, weights, p, geom, vol_geom, vol_initial):
+    """The detector weights with the truncated rays dropped when ``mode`` says so (and what was found)."""
+    from ._truncation import air_to_subtract, detect_scan_truncation, truncation_weights
+
+    found, air = detect_scan_truncation(p, vol_geom, geom, vol_initial)  # an air level left in the data is no sample
+    if air_to_subtract(air, p):
+        log.info("truncation: read off the nominal reconstruction with the air level (%.3g) removed", air.level)
     (log.warning if found.lateral else log.info)("truncation: %s", found.describe())
     if mode == "off" or (mode == "auto" and not found.vertical):
         return weights, found

@@ -143,6 +143,9 @@ that type needs) are required; everything else has the default shown.
                                 # scan): subtract what the material outside the volume adds on average to every view;
                                 # "auto": when the nominal reconstruction shows material at the volume's sides and
                                 # the volume is about as wide as the field of view
+    air = "auto"                # "auto" | "off": an air level left in the line integrals (a flat field that does not
+                                # match, [preprocess] air = "none") is subtracted for the calibration and its volumes
+                                # when it is measurably off 0 (pdvc.io.estimate_air); "off": the data as they are
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -399,6 +402,7 @@ class CalibrationConfig:
     zingers: str = "auto"
     rings: str = "auto"
     roi: str = "auto"
+    air: str = "auto"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
@@ -497,7 +501,7 @@ class Config:
         cal = self.calibration
         if stages is not None:
             keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation", "zingers",
-                                                "rings", "roi")}
+                                                "rings", "roi", "air")}
             cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
         return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
@@ -899,6 +903,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         zingers=_choice(t.pop("zingers", d.zingers), w + "zingers", ("auto", "off")),
         rings=_choice(t.pop("rings", d.rings), w + "rings", ("auto", "on", "off")),
         roi=_choice(t.pop("roi", d.roi), w + "roi", ("auto", "on", "off")),
+        air=_choice(t.pop("air", d.air), w + "air", ("auto", "off")),
         **kw,
     )
     t.finish(_CALIBRATION_KEYS)

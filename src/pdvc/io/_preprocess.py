@@ -850,7 +850,7 @@ class AirEstimate:
         return (
             f"air level in the line integrals is {self.level:.2f} (transmission {self.transmission:.2f}), "
             f"{lo:.2f} .. {hi:.2f} across the columns: the flat field does not match; "
-            f'set [preprocess] air = "auto" to normalise it'
+            f'set [preprocess] air = "auto" to normalise it (the calibration subtracts it anyway: [calibration] air = "auto")'
         )
 
 
