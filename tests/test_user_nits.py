@@ -151,3 +151,18 @@ def test_atomic_files_get_the_usual_permissions(tmp_path, umask):
     assert want == 0o666 & ~umask
     assert stat.S_IMODE((tmp_path / "atomic.txt").stat().st_mode) == want
     assert stat.S_IMODE((tmp_path / "named.bin").stat().st_mode) == want
+
+
+# -- a half turn without its end point: 91 views over [0, 180) cover 180 degrees -----------
+@pytest.mark.parametrize("stop, flagged", [(180, False), (160, True)])
+def test_inspect_counts_one_step_per_view_in_the_angular_span(tmp_path, stop, flagged):
+    from pdvc._inputs import inspect_scan
+
+    np.save(tmp_path / "p.npy", np.zeros((91, 4, 16), np.float32) + np.float32(0.5))
+    (tmp_path / "scan.toml").write_text(
+        '[data]\npath = "p.npy"\nis_raw = false\n[geometry]\ntype = "parallel"\npixel = 1.0\n'
+        f"angles = {{ start = 0, stop = {stop}, count = 91 }}\n"
+    )
+    lines, problems = inspect_scan(tmp_path / "scan.toml")
+    assert any("span 178.0 deg" in line or "span 158.2 deg" in line for line in lines)
+    assert any("a tomographic scan needs at least 180 deg" in p for p in problems) == flagged

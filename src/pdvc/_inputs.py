@@ -358,8 +358,10 @@ def inspect_scan(config) -> tuple[list, list]:
     lines.append(f"projections: min {float(p.min()):.4g}, max {float(p.max()):.4g}, mean {float(p.mean()):.4g}")
     if float(p.max()) <= 0:
         problems.append("projections are all <= 0: expected positive line integrals (is [data] is_raw right?)")
-    if span < 179.0:
-        problems.append(f"the angles span only {span:.1f} deg: a tomographic scan needs at least 180 deg")
+    step = span / max(g.n_views - 1, 1)
+    if span + step < 179.0:  # each view stands for one step: N views over [0, 180) without the end point cover 180
+        problems.append(f"the angles span only {span:.1f} deg (plus one step, {span + step:.1f}): a tomographic scan "
+                        "needs at least 180 deg")
     n_cols = g.det_shape[1]
     nyquist = np.pi / 2 * n_cols
     if g.n_views < 0.25 * nyquist:
