@@ -25,6 +25,7 @@ from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._truncation import (
     Truncation,
+    air_to_subtract,
     cylinder_window,
     detect_scan_truncation,
     detect_truncation,
@@ -88,6 +89,7 @@ __all__ = [
     "estimate_axis_offset",
     "offset_poses",
     "truncation_weights",
+    "air_to_subtract",
     "detect_scan_truncation",
     "detect_truncation",
     "outside_pattern",

@@ -339,11 +339,15 @@ def calibrate(
         (:func:`pdvc.io.estimate_air`), on every ray: the reconstructions
         take it for material (FBP turns it into a bright rim at the edge of
         the field) and the calibration for motion. ``"auto"``: when it is
-        measurably off 0 (``AirEstimate.significant``), subtract the fitted
-        air (:meth:`pdvc.io.AirEstimate.background`) and calibrate and
-        reconstruct on that copy; a sample that covers the detector has no
-        air to measure and is left as it is. ``"off"``: take the data as
-        they are. The projections given are not modified.
+        measurably off 0 and is air (:func:`air_to_subtract`: at most 90 %
+        of the pixels, flat up to the noise, seen in 90 % of the columns),
+        subtract the part the views share (``AirEstimate.fitted``: the
+        level and the column profile) and calibrate and reconstruct on that
+        copy; what varies from view to view is left to the background
+        fitted with the motion (``Stage.background``). A sample that covers
+        the detector has no air to measure and is left as it is. ``"off"``:
+        take the data as they are. The projections given are not modified
+        (``docs/method.md`` §5.18).
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume

@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import InputTypeError
 from ..geometry import VectorGeometry, VolumeGeometry
 
-__all__ = ["truncation_weights", "detect_truncation", "detect_scan_truncation", "Truncation", "outside_pattern", "cylinder_window", "field_radius",
+__all__ = ["truncation_weights", "detect_truncation", "detect_scan_truncation", "air_to_subtract", "Truncation", "outside_pattern", "cylinder_window", "field_radius",
            "field_cover"]
 
 
