@@ -403,7 +403,7 @@ def calibrate(
     vol_initial = reconstruct(p, vol_geom, geom)
     p, vol_initial, found_zingers = _zingers(zingers, p, vol_geom, geom, vol_initial, timings, poses)
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
-    weights, trunc = _truncation(truncation, weights, p, geom, vol_geom, vol_initial)
+    weights, trunc = _truncation(truncation, weights, None if air == "auto" else p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
@@ -687,15 +687,15 @@ def _air(mode, p, timings):
     """The data with a measured air level subtracted when ``mode`` says so, and what was done, in words."""
     if mode == "off":
         return p, "not checked (air = 'off')"
-    from ..io._preprocess import subtract_background
-    from ._truncation import air_to_subtract, measured_air
+    from ..io import estimate_air
+    from ._truncation import air_to_subtract
 
     t0 = time.perf_counter()
-    est = measured_air(p)
+    est = estimate_air(p)
     if air_to_subtract(est, p):
         # the part the views share: what a reconstruction takes for material. What varies from view to view (a
         # drift) is left to the background fitted with the motion (Stage.background), which also takes a plane
-        p = subtract_background(p, np.broadcast_to(est.fitted[None, :], (p.shape[0], est.fitted.size)))
+        p = p - est.fitted.astype(np.float32)[None, None, :]
         text = (f"subtracted (the level and the degree-{est.degree} column profile the views share; what varies from "
                 f"view to view is left to the background per view): {est.summary()}")
         log.warning("air: the rays that miss the sample do not read 0 (a flat field that does not match): %s", text)
@@ -712,12 +712,14 @@ def _air(mode, p, timings):
 
 
 def _truncation(mode, weights, p, geom, vol_geom, vol_initial):
-    """The detector weights with the truncated rays dropped when ``mode`` says so (and what was found)."""
-    from ._truncation import air_to_subtract, detect_scan_truncation, truncation_weights
+    """The detector weights with the truncated rays dropped when ``mode`` says so (and what was found).
 
-    found, air = detect_scan_truncation(p, vol_geom, geom, vol_initial)  # an air level left in the data is no sample
-    if air_to_subtract(air, p):
-        log.info("truncation: read off the nominal reconstruction with the air level (%.3g) removed", air.level)
+    ``p``: the data, when an air level may still be in them (``air = "off"``): the test then reads the nominal
+    reconstruction with it removed (:func:`detect_scan_truncation`); None: ``_air`` already took it out.
+    """
+    from ._truncation import detect_scan_truncation, detect_truncation, truncation_weights
+
+    found = detect_truncation(vol_initial, vol_geom) if p is None else detect_scan_truncation(p, vol_geom, geom, vol_initial)[0]
     (log.warning if found.lateral else log.info)("truncation: %s", found.describe())
     if mode == "off" or (mode == "auto" and not found.vertical):
         return weights, found

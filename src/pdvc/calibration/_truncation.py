@@ -20,8 +20,8 @@ import numpy as np
 from ..errors import InputTypeError
 from ..geometry import VectorGeometry, VolumeGeometry
 
-__all__ = ["truncation_weights", "detect_truncation", "detect_scan_truncation", "air_to_subtract", "Truncation", "outside_pattern", "cylinder_window", "field_radius",
-           "field_cover"]
+__all__ = ["truncation_weights", "detect_truncation", "detect_scan_truncation", "air_to_subtract", "Truncation",
+           "outside_pattern", "cylinder_window", "field_radius", "field_cover"]
 
 
 def _rays(geom: VectorGeometry, chunk: int):
@@ -160,13 +160,6 @@ AIR_MAX_SPREAD = 2.0
 AIR_MIN_COLUMNS = 0.9
 
 
-def measured_air(projections):
-    """:func:`pdvc.io.estimate_air` of line integrals (a helper the checks share)."""
-    from ..io import estimate_air
-
-    return estimate_air(projections)
-
-
 def air_to_subtract(air, projections) -> bool:
     """Whether an air estimate is an air level to subtract: measurably off 0 (``AirEstimate.significant``), and air.
 
@@ -209,10 +202,11 @@ def detect_scan_truncation(projections, vol_geom: VolumeGeometry, geom: VectorGe
     -------
     (Truncation, AirEstimate)
     """
+    from ..io import estimate_air
     from ..io._preprocess import subtract_background
     from ..recon import analytic
 
-    air = measured_air(projections)
+    air = estimate_air(projections)
     if air_to_subtract(air, projections):
         volume = analytic(subtract_background(projections, air.background()), vol_geom, geom)
     elif volume is None:
