@@ -114,23 +114,28 @@ def test_operators_on_the_cluster_equal_the_threaded_ones(problem, client):
     w[:4] = 0  # a ROI: the top rows out
     f0 = pdvc.forward(vol, vg, geom)
     r0 = pdvc.reduce_views(vol, vg, geom, meas, weights=w)
+    huber = (0.05, np.linspace(-0.1, 0.1, geom.n_views))  # Huber weights at the noise std; the shift sliced per chunk
+    h0 = pdvc.reduce_views(vol, vg, geom, meas, weights=w, robust=huber)
     v0 = fdk(meas, vg, geom)
     snr0 = pdvc.calibration.per_view_snr(meas, vol, vg, geom, weights=w)
     with use_scheduler(client) as session:
         f1 = pdvc.forward(vol, vg, geom)
         r1 = pdvc.reduce_views(vol, vg, geom, meas, weights=w)
+        h1 = pdvc.reduce_views(vol, vg, geom, meas, weights=w, robust=huber)
         v1 = fdk(meas, vg, geom)
         snr1 = pdvc.calibration.per_view_snr(meas, vol, vg, geom, weights=w)
         stats = dict(session.stats)
     # the same kernels on chunks of views: identical per view up to float rounding
     np.testing.assert_allclose(f1, f0, rtol=0, atol=1e-5 * np.abs(f0).max())
     for name in ("M", "b", "rss", "weight_sum", "meas_sum", "meas_sq_sum", "resid_sum"):
-        a, b = getattr(r1, name), getattr(r0, name)
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max(), err_msg=name)
+        for one, other in ((r1, r0), (h1, h0)):
+            a, b = getattr(one, name), getattr(other, name)
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max(), err_msg=name)
+    assert np.all(h0.weight_sum < r0.weight_sum)  # the cut was reached in every view
     # slabs of z from bands of detector rows: float32 rounding of the same sums
     np.testing.assert_allclose(v1, v0, rtol=0, atol=1e-5 * np.abs(v0).max())
     np.testing.assert_allclose(snr1, snr0, rtol=1e-6)
-    assert stats["calls"] == 4 and stats["tasks"] >= 4 * 2  # it really ran on the cluster, in chunks
+    assert stats["calls"] == 5 and stats["tasks"] >= 5 * 2  # it really ran on the cluster, in chunks
     assert stats["volume_sends"] == 1  # forward, reduce_views and the SNR share one sent volume
 
 

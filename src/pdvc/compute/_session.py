@@ -314,7 +314,7 @@ class DaskSession:
             out[a:b] = part
         return out
 
-    def reduce(self, vol, vol_geom, geom, center, measured, weights, backend) -> np.ndarray:
+    def reduce(self, vol, vol_geom, geom, center, measured, weights, backend, robust=None) -> np.ndarray:
         """The backend's ``reduce`` on the cluster: ``(n_views, 38)`` float64."""
 
         def submit(tag):
@@ -324,7 +324,7 @@ class DaskSession:
             return [
                 self.client.submit(
                     _tasks.reduce_chunk, vf, vol_geom, geom[a:b], parts[i], wparts[i], center, backend,
-                    key=f"{tag}-{i}", retries=RETRIES,
+                    None if robust is None else (robust[0], robust[1][a:b]), key=f"{tag}-{i}", retries=RETRIES,
                 )
                 for i, (a, b) in enumerate(bounds)
             ]

@@ -70,14 +70,16 @@ def forward_chunk(volume, vol_geom, geom, backend) -> np.ndarray:
     return get_backend(backend).forward(volume, vol_geom, geom, out)
 
 
-def reduce_chunk(volume, vol_geom, geom, measured, weights, center, backend) -> np.ndarray:
-    """The backend's per-view reduction of one chunk of views, ``(n_chunk, 38)`` float64 (see ``reduce_views``)."""
+def reduce_chunk(volume, vol_geom, geom, measured, weights, center, backend, robust=None) -> np.ndarray:
+    """The backend's per-view reduction of one chunk of views, ``(n_chunk, 38)`` float64 (see ``reduce_views``;
+    ``robust``: its ``(cut, shift)`` for this chunk's views)."""
     from ..projectors import get_backend
 
     set_task_threads()
     meas = _data(measured)
     w = _data(weights)
-    return get_backend(backend).reduce(volume, vol_geom, geom, np.asarray(center, np.float64), meas, w)
+    extra = {} if robust is None else dict(robust=robust)
+    return get_backend(backend).reduce(volume, vol_geom, geom, np.asarray(center, np.float64), meas, w, **extra)
 
 
 def per_view_chunk(fn, volume, vol_geom, geom, projections, weights) -> np.ndarray:

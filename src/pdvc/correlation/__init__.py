@@ -6,7 +6,7 @@
 
 from ._bases import BASIS_NAMES, TemporalBasis, drift_basis, is_basis_name, bspline_basis, custom_basis, dirac_basis, fourier_basis, make_basis, polynomial_basis
 from ._assess import Assessment, assess
-from ._engine import CorrelationError, CorrelationResult, Mode, Observability, correlate
+from ._engine import CorrelationError, CorrelationResult, Mode, Observability, correlate, residual_scale
 from ._frames import lab_frames, lab_to_sample_map, view_angles
 from ._metrics import shannon_entropy, snr_db
 from ._noise import estimate_noise_variance, poisson_variance
@@ -15,6 +15,7 @@ from ._scales import coarse_grain, coarse_noise_factor, coarse_volume, coarse_we
 
 __all__ = [
     "correlate",
+    "residual_scale",
     "assess",
     "Assessment",
     "CorrelationResult",

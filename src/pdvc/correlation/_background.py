@@ -102,18 +102,23 @@ def auto_background(offset_sigma: float):
 
 
 def reduce_views_background(volume, vol_geom, geom, measured, *, degree: int, weights=None, center=None,
-                            backend="auto") -> ViewReduction:
+                            backend="auto", robust=None) -> ViewReduction:
     """:func:`pdvc.projectors.reduce_views` with a smooth background per view profiled out (module docstring).
 
     Degree 0 goes through the fused pass (:func:`profile_offset`); degrees 1
-    and 2 through the sensitivity images.
+    and 2 through the sensitivity images. ``robust``: ``reduce_views``'s
+    Huber weights ``(cut, shift)``, taken on the residual before the
+    background is profiled out.
     """
     if degree == 0:
-        return profile_offset(reduce_views(volume, vol_geom, geom, measured, weights=weights, center=center, backend=backend))
-    return _by_images(volume, vol_geom, geom, measured, degree=degree, weights=weights, center=center, backend=backend)
+        return profile_offset(reduce_views(volume, vol_geom, geom, measured, weights=weights, center=center, backend=backend,
+                                           robust=robust))
+    return _by_images(volume, vol_geom, geom, measured, degree=degree, weights=weights, center=center, backend=backend,
+                      robust=robust)
 
 
-def _by_images(volume, vol_geom, geom, measured, *, degree: int, weights=None, center=None, backend="auto") -> ViewReduction:
+def _by_images(volume, vol_geom, geom, measured, *, degree: int, weights=None, center=None, backend="auto",
+               robust=None) -> ViewReduction:
     """The profiled reduction from the sensitivity images, view by view (any degree)."""
     s = np.asarray(measured, np.float32)
     nv = geom.n_views
@@ -133,10 +138,18 @@ def _by_images(volume, vol_geom, geom, measured, *, degree: int, weights=None, c
     for k in range(nv):  # one view at a time: a few (6 + K) x P arrays
         if k % chunk == 0:
             proj, sens = jacobian(volume, vol_geom, geom[k:k + chunk], center=center, backend=backend)
-        wk = w[k if w.shape[0] > 1 else 0]
+        w0 = w[k if w.shape[0] > 1 else 0]
         G = sens[k % chunk].reshape(6, -1).astype(np.float64)
         sk = s[k].reshape(-1).astype(np.float64)
         rho = sk - proj[k % chunk].reshape(-1)
+        if robust is None:
+            wk, loss = w0, float(w0 @ rho**2)
+        else:  # the fused kernel's Huber weights (pdvc.projectors.reduce_views)
+            cut = robust[0]
+            rho = rho - robust[1][k]
+            a = np.abs(rho)
+            wk = w0 * np.minimum(1.0, cut / np.maximum(a, 1e-300))
+            loss = float(w0 @ np.where(a > cut, 2 * cut * a - cut * cut, rho**2))
         Gw = G * wk
         Pw = phi * wk
         A = Pw @ phi.T
@@ -145,9 +158,9 @@ def _by_images(volume, vol_geom, geom, measured, *, degree: int, weights=None, c
         sol = np.linalg.lstsq(A, np.column_stack([C.T, e]), rcond=1e-12)[0]  # A⁻¹ [Cᵀ e]; A is singular with no weight
         M[k] = Gw @ G.T - C @ sol[:, :6]
         b[k] = Gw @ rho - C @ sol[:, 6]
-        rss[k] = max(float(wk @ rho**2 - e @ sol[:, 6]), 0.0)
+        rss[k] = max(loss - float(e @ sol[:, 6]), 0.0)
         wsum[k] = float(wk.sum())
-        msum[k] = float(wk @ sk)
-        m2sum[k] = float(wk @ sk**2)
+        msum[k] = float(w0 @ sk)
+        m2sum[k] = float(w0 @ sk**2)
     return ViewReduction(M=M, b=b, rss=rss, weight_sum=wsum, meas_sum=msum, meas_sq_sum=m2sum,
                          resid_sum=np.zeros(nv), center=np.asarray(center, float))

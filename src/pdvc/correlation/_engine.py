@@ -27,14 +27,14 @@ import numpy as np
 from ..errors import PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..status import Status
-from ..projectors import POSE_PARAMETERS, ViewReduction, reduce_views
+from ..projectors import POSE_PARAMETERS, ViewReduction, forward, reduce_views
 from ._background import BACKGROUND_DEGREES, reduce_views_background, view_offset
 from ._bases import TemporalBasis, make_basis
 from ._frames import lab_to_sample_map, view_angles
 from ._noise import estimate_noise_variance
 from ._scales import coarse_grain, coarse_noise_factor, coarse_volume, coarse_weights
 
-__all__ = ["correlate", "CorrelationResult", "Mode", "Observability", "CorrelationError"]
+__all__ = ["correlate", "residual_scale", "CorrelationResult", "Mode", "Observability", "CorrelationError"]
 
 log = logging.getLogger(__name__)
 
@@ -244,17 +244,28 @@ class _Problem:
     points: np.ndarray
     n_pass: int = 0
     background: Optional[int] = None  # degree of the smooth background per view profiled out (None: none)
+    robust: Optional[tuple] = None  # (cut, shift per view) of the Huber weights of every pass, or None
+    weight_total: float = 0.0  # Σ w of the pixel weights (robust: χ's normalisation, fixed through the call)
 
     def reduce(self, rv, t) -> ViewReduction:
         self.n_pass += 1
         g = self.geom.apply_poses(rv, t)
         if self.background is not None:
             return reduce_views_background(self.volume, self.vol_geom, g, self.projections, degree=self.background,
-                                           weights=self.weights, center=self.center, backend=self.backend)
-        return reduce_views(self.volume, self.vol_geom, g, self.projections, weights=self.weights, center=self.center, backend=self.backend)
+                                           weights=self.weights, center=self.center, backend=self.backend, robust=self.robust)
+        return reduce_views(self.volume, self.vol_geom, g, self.projections, weights=self.weights, center=self.center,
+                            backend=self.backend, robust=self.robust)
 
     def chi(self, red: ViewReduction) -> float:
-        return float(np.sqrt(red.rss.sum() / (max(red.weight_sum.sum(), 1e-300) * self.gamma2)))
+        """χ of a pass: √(rss / (Σ w γ²)); with Huber weights rss is Huber's loss and Σ w the pixel weights' sum."""
+        total = self.weight_total if self.robust is not None else red.weight_sum.sum()
+        return float(np.sqrt(red.rss.sum() / (max(total, 1e-300) * self.gamma2)))
+
+    def offset_sigma(self, red: ViewReduction) -> float:
+        """:func:`view_offset` of the residual at a pass (the Huber weights' shift per view put back)."""
+        if self.robust is not None and self.background is None:
+            red = replace(red, resid_sum=red.resid_sum + self.robust[1] * red.weight_sum)
+        return view_offset(red, self.gamma2)
 
     def framed(self, red: ViewReduction):
         """M, b in the solve's frame and scaled units, restricted to free parameters."""
@@ -370,6 +381,7 @@ def correlate(
     callback: Optional[Callable[[dict], None]] = None,
     max_start_chi: Optional[float] = None,
     background: Optional[int] = None,
+    robust: Optional[float] = None,
 ) -> CorrelationResult:
     """Find the rigid pose of the sample at every view from its projections.
 
@@ -449,6 +461,17 @@ def correlate(
         (``pdvc.correlation._background``). χ and the SNR are then those of
         the residual after it. Degree 0 costs nothing extra; 1 and 2 compute
         the sensitivity images (threaded, by chunks of views).
+    robust : float, optional
+        Huber's M-estimator instead of least squares (iteratively
+        reweighted: every pass weighs each pixel by ``min(1, c / |e|)`` of
+        its own residual ``e``, :func:`pdvc.projectors.reduce_views`), so
+        that outliers (zingers, hot pixels, a detector defect) do not steer
+        the poses. The cut ``c`` is ``robust`` times the robust std of the
+        residual at the starting poses, and ``e`` the residual less its
+        median per view there (:func:`residual_scale`; one forward
+        projection more), both fixed through the call. χ is then
+        √(Huber's loss / (Σ w γ²)), the same as least squares' where no
+        pixel is beyond the cut.
 
     Returns
     -------
@@ -468,7 +491,7 @@ def correlate(
                 basis=basis, method=method, frame=frame, center=center, fixed=fixed, angles=angles, times=times,
                 max_iter=max_iter, tol_px=tol_px, rcond=rcond, max_modes=max_modes, pgd_passes=pgd_passes,
                 mode_iter=mode_iter, min_gain=min_gain, noise_floor=noise_floor, accelerate=accelerate, backend=backend,
-                callback=callback, background=background,
+                callback=callback, background=background, robust=robust,
             ),
             weights,
             noise_variance,
@@ -487,6 +510,17 @@ def correlate(
     n, c, gamma2 = geom.n_views, prob.center, prob.gamma2
     rv = np.zeros((n, 3)) if initial_rotvecs is None else np.array(initial_rotvecs, float).reshape(n, 3)
     t = np.zeros((n, 3)) if initial_translations is None else np.array(initial_translations, float).reshape(n, 3)
+    if robust is not None:
+        if isinstance(robust, bool) or not isinstance(robust, (int, float, np.integer, np.floating)) or not robust > 0 \
+                or not np.isfinite(robust):
+            raise CorrelationError(f"robust must be None or a positive Huber threshold (in residual std), got {robust!r}")
+        sigma, shift = residual_scale(prob.volume, prob.vol_geom, prob.projections, geom.apply_poses(rv, t),
+                                      weights=prob.weights, noise_variance=gamma2, backend=backend)
+        prob.robust = (float(robust) * sigma, shift)
+        w = prob.weights
+        prob.weight_total = float(np.prod(prob.projections.shape)) if w is None else \
+            float(np.broadcast_to(np.asarray(w, np.float64), prob.projections.shape).sum())
+        log.info("correlate: Huber weights beyond %.3g (%.3g x the residual's robust std %.3g)", prob.robust[0], robust, sigma)
 
     red = prob.reduce(rv, t)
     snr_before = red.snr_db()
@@ -536,7 +570,7 @@ def correlate(
         message=status.message,
         scale_history=((1, chi_hist[0], chi_hist[-1], prob.n_pass),),
         background=prob.background,
-        offset_sigma=view_offset(red, gamma2),
+        offset_sigma=prob.offset_sigma(red),
     )
 
 
@@ -578,6 +612,31 @@ def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, w
         background=None if background is None else int(background),
     )
     return prob, basis_obj
+
+
+def residual_scale(volume, vol_geom, projections, geom, *, weights=None, noise_variance: float, backend: str = "auto"):
+    """The robust scale of the residual ``ρ = s - Π f`` at ``geom``, and its offset per view.
+
+    ``shift[k]`` is the median of view k's residual over its pixels of
+    non-zero weight (an offset per view, e.g. an air level that drifts, is
+    no outlier); ``σ = max(1.4826 MAD, √noise_variance)`` of ``ρ - shift``
+    over those pixels, all views together. One forward projection.
+
+    Returns
+    -------
+    sigma : float
+    shift : (n_views,) float64
+    """
+    s = np.asarray(projections, dtype=np.float32)
+    rho = s - forward(volume, vol_geom, geom, backend=backend)
+    floor = float(np.sqrt(noise_variance))
+    sel = np.ones(s.shape, bool) if weights is None else np.broadcast_to(np.asarray(weights) > 0, s.shape)
+    shift = np.array([np.median(rho[k][sel[k]]) if sel[k].any() else 0.0 for k in range(s.shape[0])], np.float64)
+    if not sel.any():
+        return floor, shift
+    rho -= shift[:, None, None].astype(np.float32)
+    mad = float(np.median(np.abs(rho[sel])))
+    return max(1.4826 * mad, floor), shift
 
 
 def _check_scales(scales) -> tuple:

@@ -203,6 +203,7 @@ def reduce_views(
     weights=None,
     center=None,
     backend="auto",
+    robust=None,
 ) -> ViewReduction:
     """Fused Jacobian pass reduced per view to a 6x6 matrix and a 6-vector.
 
@@ -219,10 +220,27 @@ def reduce_views(
         not traced. Default: all ones.
     center : (x, y, z), optional
         Centre of the rotation modes; default the volume centre.
+    robust : (cut, shift), optional
+        Huber weights of this pass's own residual (one step of iteratively
+        reweighted least squares): with ``e = s - Π f - shift[k]`` (``shift``
+        an offset per view, ``(n_views,)``), a pixel weighs
+        ``w min(1, cut / |e|)`` in ``M``, ``b`` (on ``e``), ``weight_sum``,
+        ``resid_sum`` (``Σ w' e``) and ``grad_sum``, and ``rss`` holds Huber's
+        loss ``Σ w L(e)``, ``L(e) = e²`` for ``|e| <= cut`` and
+        ``2 cut |e| - cut²`` beyond. ``meas_sum`` and ``meas_sq_sum`` keep ``w``.
     """
     _check_geoms(vol_geom, geom)
     vol = _as_volume(volume, vol_geom)
     meas = _as_projections(measured, geom, "measured")
+    if robust is not None:
+        try:
+            cut, shift = float(robust[0]), np.asarray(robust[1], np.float64).reshape(-1)
+        except (TypeError, ValueError, IndexError):
+            raise ShapeError(f"robust must be (cut, shift), a positive number and one offset per view, got {robust!r}") from None
+        if not (np.isfinite(cut) and cut > 0) or shift.shape != (geom.n_views,) or not np.all(np.isfinite(shift)):
+            raise ShapeError(f"robust must be (cut, shift): cut positive and finite, shift finite of shape ({geom.n_views},); "
+                             f"got cut {cut!r}, shift of shape {shift.shape}")
+        robust = (cut, shift)
     nr, nc = geom.det_shape
     if weights is None:
         w = np.ones((1, nr, nc), np.float32)
@@ -241,10 +259,11 @@ def reduce_views(
         raise ShapeError("measured must be finite (no NaN or Inf); mask bad pixels with weights instead")
     c = _center(center, vol_geom)
     session = current_session()  # a Dask cluster made current by pdvc.compute.use_scheduler
+    extra = {} if robust is None else dict(robust=robust)  # a backend without robust weights is called as before
     if session is not None:
-        red = session.reduce(vol, vol_geom, geom, c, meas, w, backend)
+        red = session.reduce(vol, vol_geom, geom, c, meas, w, backend, **extra)
     else:
-        red = get_backend(backend).reduce(vol, vol_geom, geom, c, meas, w)
+        red = get_backend(backend).reduce(vol, vol_geom, geom, c, meas, w, **extra)
     iu = np.triu_indices(6)
     M = np.zeros((geom.n_views, 6, 6))
     M[:, iu[0], iu[1]] = red[:, :21]

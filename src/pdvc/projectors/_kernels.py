@@ -696,12 +696,19 @@ def jacobian_images_kernel(vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, g
 
 @njit(parallel=True, cache=True, fastmath=_FAST)
 def jacobian_reduce_kernel(
-    vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, geo, cone, meas, weights, partial
+    vf, shape_xyz, spacing_xyz, origin_xyz, center_xyz, geo, cone, meas, weights, cut, shift, partial
 ):
     """Per (view, row): sums of w g gᵀ (upper triangle), w g ρ, w ρ², w, w s, w s², w ρ, w g.
 
     ρ = s - P (measured minus projected), so that M⁻¹ b is the Gauss-Newton
     step of one view.  ``weights`` has 1 or n_views leading entries.
+
+    ``cut > 0``: Huber weights on ``e = ρ - shift[k]`` (iteratively
+    reweighted least squares, the weights of this pass's residual): every
+    sum above uses ``w min(1, cut / |e|)`` and ``e`` in place of ``w`` and
+    ``ρ``, except ``Σ w s``, ``Σ w s²`` (the data's) and the residual slot,
+    which holds Huber's loss ``Σ w L(e)`` (``L(e) = e²`` inside the cut,
+    ``2 cut |e| - cut²`` outside).
     """
     nx, ny, nz = shape_xyz[0], shape_xyz[1], shape_xyz[2]
     spx, spy, spz = spacing_xyz[0], spacing_xyz[1], spacing_xyz[2]
@@ -709,6 +716,7 @@ def jacobian_reduce_kernel(
     cx, cy, cz = center_xyz[0], center_xyz[1], center_xyz[2]
     n_views, n_rows, n_cols = meas.shape
     per_view_w = weights.shape[0] > 1
+    robust = cut > 0.0
     for rk in prange(n_views * n_rows):
         r = rk // n_views  # row-major: see forward_kernel
         k = rk - r * n_views
@@ -717,13 +725,23 @@ def jacobian_reduce_kernel(
         g = np.empty(6)
         acc = np.zeros(N_RED)
         for c in range(n_cols):
-            w = weights[kw, r, c]
-            if w == 0.0:
+            w0 = weights[kw, r, c]
+            if w0 == 0.0:
                 continue
             sx, sy, sz, dx, dy, dz = _ray(geo, k, r, c, cone)
             p = _sensitivities(g, vf, sx, sy, sz, dx, dy, dz, nx, ny, nz, spx, spy, spz, ox, oy, oz, cx, cy, cz, cone)
             s = meas[k, r, c]
             rho = s - p
+            w = w0
+            loss = rho * rho
+            if robust:
+                rho = rho - shift[k]
+                a = abs(rho)
+                if a > cut:
+                    w = w0 * cut / a
+                    loss = 2.0 * cut * a - cut * cut
+                else:
+                    loss = rho * rho
             q = 0
             for i in range(6):
                 wgi = w * g[i]
@@ -732,10 +750,10 @@ def jacobian_reduce_kernel(
                     q += 1
                 acc[21 + i] += wgi * rho
                 acc[32 + i] += wgi
-            acc[27] += w * rho * rho
+            acc[27] += w0 * loss
             acc[28] += w
-            acc[29] += w * s
-            acc[30] += w * s * s
+            acc[29] += w0 * s
+            acc[30] += w0 * s * s
             acc[31] += w * rho
         for q in range(N_RED):
             partial[kr, q] = acc[q]

@@ -87,12 +87,13 @@ class NumbaBackend:
         )
         return out_proj, out_sens
 
-    def reduce(self, volume, vol_geom, geom, center, measured, weights):
+    def reduce(self, volume, vol_geom, geom, center, measured, weights, robust=None):
         shape_xyz, sp, table, cone = self._common(vol_geom, geom)
         origin = vol_geom.voxel_center(0, 0, 0)
         n_views, n_rows, _ = measured.shape
         partial = np.empty((n_views * n_rows, K.N_RED), dtype=np.float64)
+        cut, shift = (0.0, np.zeros(n_views)) if robust is None else (float(robust[0]), np.asarray(robust[1], np.float64))
         K.jacobian_reduce_kernel(
-            volume.reshape(-1), shape_xyz, sp, origin, center, table, cone, measured, weights, partial
+            volume.reshape(-1), shape_xyz, sp, origin, center, table, cone, measured, weights, cut, shift, partial
         )
         return partial.reshape(n_views, n_rows, K.N_RED).sum(axis=1)
