@@ -411,3 +411,32 @@ def test_roi_is_read_defaults_to_auto_and_reaches_calibrate(tmp_path):
     assert calibration_options(cfg.calibration, (64, 64))["roi"] == "on"
     with pytest.raises(ConfigError, match="roi"):
         load_config(_cfg(calibration={"roi": "yes"}), base_dir=tmp_path)
+
+
+def test_robust_reaches_every_stage_and_zero_turns_it_off(tmp_path):
+    from pdvc.calibration import Stage, StageError, recipe_stages
+
+    assert Stage().robust is None  # least squares by default
+    raw = _cfg()
+    raw["calibration"] = {"robust": 5}
+    cfg = load_config(raw, base_dir=tmp_path)
+    assert cfg.calibration.recipe_parameters() == {"robust": 5.0}
+    stages = recipe_stages(det_shape=(64, 64), **cfg.calibration.recipe_parameters())
+    assert {s.robust for s in stages} == {5.0}  # warm-up and jolts too
+    raw["calibration"] = {"robust": 0}
+    stages = recipe_stages(det_shape=(64, 64), **load_config(raw, base_dir=tmp_path).calibration.recipe_parameters())
+    assert {s.robust for s in stages} == {None}
+    assert {s.robust for s in recipe_stages(det_shape=(64, 64))} == {None}
+    # a stage list round-trips through its TOML tables (0 for none)
+    for r in (None, 2.5):
+        st = Stage(robust=r)
+        assert Stage.from_dict(st.to_dict()).robust == r
+    for bad in (-1, "4", True, float("nan")):
+        with pytest.raises(StageError, match="robust"):
+            Stage(robust=bad)
+    raw["calibration"] = {"robust": -1}
+    with pytest.raises(ConfigError, match=r"calibration\.robust must be zero or positive"):
+        load_config(raw, base_dir=tmp_path)
+    raw["calibration"] = {"robust": "huber"}
+    with pytest.raises(ConfigError, match=r"calibration\.robust must be a number"):
+        load_config(raw, base_dir=tmp_path)

@@ -21,3 +21,7 @@ def test_zingers_taken_out_give_back_the_accuracy_of_a_clean_scan(bench):
     assert int(auto["zingers"].split()[0]) > 0
     assert auto["err_pdvc"] < 1.5 * clean["err_pdvc"] + 0.005, (auto["err_pdvc"], clean["err_pdvc"])
     assert off["err_pdvc"] > 2 * auto["err_pdvc"], (off["err_pdvc"], auto["err_pdvc"])
+    # without the filter, Huber's weights in the Jacobian pass (robust = 5) take most of what the zingers cost
+    # (measured 0.058 -> 0.013 px; filtered 0.010)
+    huber = run_bench_case(bench, 2, dict(zingers=0.002), zingers="off", robust=5.0)
+    assert huber["err_pdvc"] < 0.4 * off["err_pdvc"], (huber["err_pdvc"], off["err_pdvc"])

@@ -53,6 +53,7 @@ RECIPES = ("default", "precession", "jolts", "axis")
 _ROTATIONS = ("rx", "ry", "rz")
 
 
+
 class StageError(PdvcError, ValueError):
     """A stage or recipe that cannot run: a bad field, an unknown recipe."""
 
@@ -149,6 +150,16 @@ class Stage:
         by more than ``MIN_MODEL_GAIN`` replaces the stage's model, and
         every later stage that lists candidates takes it. Once per run, at
         the first such stage. Empty (default for a stage): no choice.
+    robust : float or None
+        Huber's cut on the residual, in its robust standard deviation
+        (:func:`pdvc.correlate`'s ``robust``): every Jacobian pass weighs
+        each pixel by Huber's weight of its own residual (iteratively
+        reweighted least squares), the cut measured again at every round
+        against its fresh reconstruction, so that outliers the
+        preprocessing left (zingers, hot pixels, a defect of the detector)
+        do not steer the poses; 5 was measured. ``None`` or 0 (default):
+        least squares. Not the default: on clean scans it moves the loop's
+        fixed point (``docs/method.md`` §5.19).
     max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond
         The engine's options (:func:`pdvc.correlate`).
     """
@@ -179,6 +190,7 @@ class Stage:
     background: Any = "auto"
     candidates: tuple = ()
     extrapolate: bool = False
+    robust: Optional[float] = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -235,6 +247,12 @@ class Stage:
         if not isinstance(self.extrapolate, (bool, np.bool_)):
             raise StageError(f"{w}extrapolate must be true or false, got {self.extrapolate!r}")
         set_("extrapolate", bool(self.extrapolate))
+        if self.robust is not None:
+            val = self.robust
+            if not isinstance(val, (int, float, np.integer, np.floating)) or isinstance(val, bool) or not (np.isfinite(val) and val >= 0):
+                raise StageError(f"{w}robust must be a positive Huber threshold (residual std), or 0 or None (plain least squares), "
+                                 f"got {val!r}")
+            set_("robust", float(val) if val > 0 else None)
         if self.stall_ratio is not None and not (isinstance(self.stall_ratio, (int, float)) and self.stall_ratio > 0):
             raise StageError(f"{w}stall_ratio must be a positive number or None, got {self.stall_ratio!r}")
 
@@ -254,6 +272,7 @@ class Stage:
         d["guards"] = list(self.guards)
         d["candidates"] = list(self.candidates)
         d["stall_ratio"] = 0.0 if self.stall_ratio is None else float(self.stall_ratio)
+        d["robust"] = 0.0 if self.robust is None else float(self.robust)
         return d
 
     @classmethod

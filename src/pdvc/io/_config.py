@@ -105,6 +105,8 @@ that type needs) are required; everything else has the default shown.
     # max_iter = 10             # Jacobian passes per correlation (per round)
     # accelerate = true         # Anderson-accelerated Gauss-Newton steps (docs/method.md 5.6)
     # extrapolate = false       # rounds that creep along one mode jump to their limit (Aitken; off: docs/method.md 5.6)
+    # robust = 0                # Huber weights on the residual beyond this many robust std, in every pass (IRLS),
+                                #   for outliers the preprocessing left (5 measured); 0 = least squares (docs/method.md 5.19)
     # max_modes = 5             # PGD: modes at most
     # pgd_passes = 5            # PGD: alternating passes per mode
     # min_gain = 0.01           # PGD: stop when a mode lowers chi by less than this fraction
@@ -124,7 +126,7 @@ that type needs) are required; everything else has the default shown.
     # basis = "drift"           # reconstruct, scale, oversample, oversample_by, rounds, tol_px, until ("converged" |
     # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
     # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond, background,
-                                # candidates, extrapolate
+                                # candidates, extrapolate, robust (0: none)
     # until = "rounds"
     # rounds = 1
     # run settings
@@ -384,6 +386,7 @@ class CalibrationConfig:
     max_iter: Optional[int] = None
     accelerate: Optional[bool] = None
     extrapolate: Optional[bool] = None
+    robust: Optional[float] = None
     max_modes: Optional[int] = None
     pgd_passes: Optional[int] = None
     min_gain: Optional[float] = None
@@ -803,7 +806,7 @@ _CALIBRATION_KEYS = tuple(f.name for f in dataclasses.fields(CalibrationConfig))
 _RECIPE_KEYS = (
     "basis", "method", "frame", "fixed", "reconstruct", "guards", "max_outer", "tol_px", "max_iter", "max_modes",
     "pgd_passes", "min_gain", "noise_floor", "rcond", "oversample", "oversample_by", "accelerate", "background",
-    "candidates", "extrapolate",
+    "candidates", "extrapolate", "robust",
 )
 
 
@@ -848,7 +851,8 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         val = t.pop(key)
         if val is not None:
             kw[key] = _integer(val, w + key, minimum=minimum)
-    for key, rule in (("tol_px", dict(positive=True)), ("min_gain", dict(nonneg=True, hi=1.0)), ("noise_floor", dict(lo=0.0)), ("rcond", dict(positive=True, hi=1.0))):
+    for key, rule in (("tol_px", dict(positive=True)), ("min_gain", dict(nonneg=True, hi=1.0)), ("noise_floor", dict(lo=0.0)),
+                      ("rcond", dict(positive=True, hi=1.0)), ("robust", dict(nonneg=True))):
         val = t.pop(key)
         if val is not None:
             kw[key] = _number(val, w + key, **rule)
