@@ -82,6 +82,7 @@ def main(argv=None):
     ap.add_argument("--sod", type=float, default=8.0, help="source-axis distance in volume edges (default 8; 2: a wider cone)")
     ap.add_argument("--tilt", type=float, default=0.5, help="axis tilt, degrees (default 0.5)")
     ap.add_argument("--precession", type=float, default=0.3, help="precession amplitude, degrees (default 0.3)")
+    ap.add_argument("--recipe", default="default", help="pdvc.calibrate's recipe (default: the default one)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
@@ -139,13 +140,13 @@ def main(argv=None):
 
     # --- what the calibration reaches
     t1 = time.perf_counter()
-    res = pdvc.calibrate(p, geom, vg)
+    res = pdvc.calibrate(p, geom, vg, recipe=args.recipe)
     t_cal = time.perf_counter() - t1
     est = Poses(*fix_gauge(res.poses.rotvecs, res.poses.translations, geom, center=c))
     ref = Poses(*fix_gauge(rv, t, geom, center=c))
     err = est.to_params(c) - ref.to_params(c)
     total = reprojection_error(geom.apply(est), geom.apply(ref), points).rms
-    print(f"calibration: {res.status.name.lower()}, gauge-free error {total:.4f} px (nominal "
+    print(f"calibration ({args.recipe}): {res.status.name.lower()}, gauge-free error {total:.4f} px (nominal "
           f"{reprojection_error(geom, geom.apply(ref), points).rms:.3f} px), {t_cal:.1f} s; noise std {np.sqrt(gamma2):.4g}\n")
 
     print(f"{'mode':40s} {'bound, model':>12s} {'bound, alone':>12s} {'FDK re-solved':>14s} {'reached':>9s}   (px)")
