@@ -53,7 +53,6 @@ RECIPES = ("default", "precession", "jolts", "axis")
 _ROTATIONS = ("rx", "ry", "rz")
 
 
-
 class StageError(PdvcError, ValueError):
     """A stage or recipe that cannot run: a bad field, an unknown recipe."""
 
