@@ -197,3 +197,55 @@ def test_the_step_bound_from_ones_is_the_top_eigenvalue_from_below(blob_scan):
     lip = nonneg_ls_lipschitz(vg, geom, coarsen=2)
     top = _power_iteration(shape, A, AT, n_iter=40)
     assert 0.99 * top < lip <= top * (1 + 1e-5)
+
+
+def test_the_ramp_preconditioner_is_symmetric_positive_and_a_ramp_in_the_planes_normal_to_z():
+    from pdvc.recon._iterative import RAMP_FLOOR, _ramp_preconditioner
+
+    rng = np.random.default_rng(3)
+    shape = (5, 12, 10)
+    M = _ramp_preconditioner(shape, (1.0, 1.0, 1.0))
+    u, v = (rng.standard_normal(shape).astype(np.float32) for _ in range(2))
+    lhs, rhs = float(np.vdot(u, M(v))), float(np.vdot(M(u), v))
+    assert abs(lhs - rhs) <= 1e-5 * abs(lhs)  # symmetric
+    assert float(np.vdot(u, M(u))) > 0  # positive
+    # no coupling between planes: a slice stays in its plane
+    only = np.zeros(shape, np.float32)
+    only[2] = u[2]
+    out = M(only)
+    assert np.all(out[[0, 1, 3, 4]] == 0)
+    # a constant is scaled by the floor (k = 0); a plane wave of k cycles per voxel by about |k| + floor in the
+    # middle of the plane (the zero padding lets the edges differ)
+    c = M(np.ones(shape, np.float32))
+    assert abs(float(c[2, 6, 5]) - RAMP_FLOOR) < 0.2 * RAMP_FLOOR + 0.05 * 0.5
+    wave = np.cos(2 * np.pi * 0.25 * np.arange(10))[None, None, :] * np.ones(shape, np.float32)
+    ratio = M(wave.astype(np.float32))[2, 6, 4] / wave[2, 6, 4]
+    assert 0.2 < ratio < 0.35  # |k| = 0.25
+
+
+def test_the_preconditioned_fit_converges_faster_to_the_same_volume(blob_scan):
+    # a parallel scan (rays normal to z: the ramp is Π^T Π's inverse there) of an analytic-free smooth blob
+    vg, vol, _, _ = blob_scan
+    geom = pdvc.parallel(np.linspace(0, np.pi, 60, endpoint=False), det_shape=(20, 24), pixel=1.0)
+    p = pdvc.forward(vol, vg, geom)
+    p_in = p.copy()
+
+    def residual(x):
+        return float(np.linalg.norm(pdvc.forward(x, vg, geom) - p))
+
+    ref = nonneg_ls(p, vg, geom, n_iter=400, support=False)
+    plain = nonneg_ls(p, vg, geom, n_iter=20, support=False)
+    pre = nonneg_ls(p, vg, geom, n_iter=10, support=False, precondition=True)
+    np.testing.assert_array_equal(p, p_in)
+    assert pre.min() >= 0.0 and pre.dtype == np.float32
+    # measured: 10 filtered iterations leave a residual of 0.031, 20 plain ones 0.052 (10 plain: 0.19); the
+    # volume is within 0.20 % of the 400-iteration fit (10 plain: 0.27 %)
+    assert residual(pre) < 0.8 * residual(plain)
+    assert np.linalg.norm(pre - ref) < 0.004 * np.linalg.norm(ref)
+    # its step bound is the top eigenvalue of the filtered normal operator, from below but close
+    lip = nonneg_ls_lipschitz(vg, geom, precondition=True)
+    assert lip != nonneg_ls_lipschitz(vg, geom)
+    from pdvc.recon._iterative import _power_iteration, _ramp_preconditioner, _spline_operator
+
+    shape, vg_c, _, A, AT = _spline_operator(vg, geom, 1, "auto")
+    assert abs(_power_iteration(shape, A, AT, _ramp_preconditioner(shape, vg_c.voxel_size), n_iter=30) / lip - 1) < 0.05

@@ -45,6 +45,10 @@ from ._stages import JOLT_BASIS, Stage, StageError
 EXTRAPOLATE_RATIO = (0.5, 0.95)
 EXTRAPOLATE_COS = 0.9
 EXTRAPOLATE_MAX = 4.0
+# the calibration's nonneg_ls volumes: FISTA iterations, and the ramp preconditioner (measured faster and less accurate
+# on the tuning splits, so off: docs/method.md §5.20)
+NONNEG_ITER = 30
+NONNEG_PRECONDITION = False
 
 __all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
            "jolt_views"]
@@ -203,11 +207,13 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
         grid, coarsen = (vol_geom, 1) if k > 1 and stage.oversample_by == "spline" else (fine, k)
         lip = None
         if lipschitz is not None:
-            key = (tuple(grid.shape), tuple(grid.voxel_size), coarsen, geom.kind, geom.n_views, tuple(geom.det_shape))
+            key = (tuple(grid.shape), tuple(grid.voxel_size), coarsen, geom.kind, geom.n_views, tuple(geom.det_shape),
+                   NONNEG_PRECONDITION)
             if key not in lipschitz:
-                lipschitz[key] = nonneg_ls_lipschitz(grid, geom, coarsen=coarsen)
+                lipschitz[key] = nonneg_ls_lipschitz(grid, geom, coarsen=coarsen, precondition=NONNEG_PRECONDITION)
             lip = lipschitz[key]
-        vol = nonneg_ls(projections, grid, geom, coarsen=coarsen, weights=weights, lipschitz=lip)
+        vol = nonneg_ls(projections, grid, geom, coarsen=coarsen, weights=weights, lipschitz=lip, n_iter=NONNEG_ITER,
+                        precondition=NONNEG_PRECONDITION)
         return spline_upsample(vol, k) if grid is vol_geom and k > 1 else vol
     return cgls(projections, fine, geom)
 

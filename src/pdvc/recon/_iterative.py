@@ -22,6 +22,10 @@ __all__ = ["cgls", "nonneg_ls", "nonneg_ls_lipschitz"]
 # iterations from a random vector (4.5 % short) and the margin was 1.2: 1 / (1.2 x 26325) against 1 / (1.15 x 27495)
 # on the 180-degree stand-in's scale-2 grid (docs/method.md §5.16)
 STEP_MARGIN = 1.15
+# nonneg_ls(precondition=True): Πᵀ Π of rays normal to the rotation axis is a convolution by 1/r in each plane normal to
+# it, whose inverse is the ramp |k|; the preconditioner is that ramp, plus RAMP_FLOOR (cycles per voxel) so that it stays
+# positive definite at k = 0 (docs/method.md §5.20)
+RAMP_FLOOR = 0.005
 
 
 def cgls(
@@ -197,6 +201,7 @@ def nonneg_ls(
     support=True,
     weights=None,
     lipschitz: Optional[float] = None,
+    precondition: bool = False,
     backend: str = "auto",
     callback: Optional[Callable[[int, float], None]] = None,
 ) -> np.ndarray:
@@ -221,6 +226,13 @@ def nonneg_ls(
     ``lipschitz`` when the caller knows it), momentum reset when it points uphill
     (gradient restart of O'Donoghue & Candès). Each iteration is one
     forward projection and one exact back-projection on ``vol_geom``.
+    With ``precondition`` the gradient is filtered by a ramp ``|k| +
+    RAMP_FLOOR`` in the planes normal to the rotation axis (``z``), the
+    inverse of ``ΠᵀΠ`` for rays normal to it: the fine detail, which plain
+    gradient steps fit last, converges with the coarse (on the 180° stand-in
+    of ``bench_calibrate.py`` 10 iterations fit the data as closely as 30
+    without it; ``docs/method.md`` §5.20). ``L`` is then that of the
+    filtered operator.
 
     Parameters
     ----------
@@ -250,6 +262,10 @@ def nonneg_ls(
         calibration's rounds) passes the first estimate and saves its 3
         forward and 3 back-projections; the 1.15 margin of the step covers
         the change. Default: estimated here.
+    precondition : bool
+        Filter the gradient by the ramp of the planes normal to ``z`` (see
+        above); ``lipschitz`` must then come from
+        ``nonneg_ls_lipschitz(..., precondition=True)``.
     callback : callable, optional
         ``callback(iteration, residual_norm)`` after each iteration
         (residual at the extrapolated point).
@@ -275,6 +291,7 @@ def nonneg_ls(
                                       and np.isfinite(lipschitz)):
         raise PdvcError(f"lipschitz must be a finite float >= 0 (or None), got {lipschitz!r}")
     shape, vg_c, up, A, AT = _spline_operator(vol_geom, geom, f, backend)
+    M = _ramp_preconditioner(shape, vg_c.voxel_size) if precondition else None
 
     x0 = analytic(b, vg_c, geom)  # only the start: a short arc costs it its Parker weights, not the fit
     if support is True:
@@ -293,7 +310,7 @@ def nonneg_ls(
     x = project(x0)
     if n_iter == 0:
         return up(x)
-    lip = _power_iteration(shape, A, AT) if lipschitz is None else float(lipschitz)
+    lip = _power_iteration(shape, A, AT, M) if lipschitz is None else float(lipschitz)
     if lip == 0.0:
         return up(x)
     step = np.float32(1.0 / (STEP_MARGIN * lip))
@@ -303,7 +320,8 @@ def nonneg_ls(
         r = A(y) - b
         if w is not None:  # weights <= 1: the unweighted Lipschitz bound still holds
             r *= w
-        x_new = project(y - step * AT(r))
+        g = AT(r)
+        x_new = project(y - step * (g if M is None else M(g)))
         if float(np.vdot(y - x_new, x_new - x)) > 0:  # momentum uphill: restart
             tk = 1.0
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
@@ -352,8 +370,32 @@ def _spline_operator(vol_geom: VolumeGeometry, geom: VectorGeometry, f: int, bac
     return shape, vg_c, up, A, AT
 
 
-def _power_iteration(shape, A, AT, n_iter: int = 3) -> float:
-    """Largest eigenvalue of ``AᵀA`` from below, by power iterations from the constant vector.
+def _ramp_preconditioner(shape, voxel_size) -> Callable[[np.ndarray], np.ndarray]:
+    """``v -> M v``: the ramp ``|k| + RAMP_FLOOR`` (cycles per voxel) over the (y, x) planes of a ``(nz, ny, nx)`` grid.
+
+    Symmetric and positive definite; zero-padded to twice the plane so that
+    the filter does not wrap around.
+    """
+    from scipy import fft
+
+    _, ny, nx = shape
+    sy, sx = float(voxel_size[1]), float(voxel_size[2])
+    h = 0.5 * (sy + sx)  # frequencies in cycles per mean in-plane voxel
+    n2 = (fft.next_fast_len(2 * ny, real=True), fft.next_fast_len(2 * nx, real=True))
+    ky = np.fft.fftfreq(n2[0], d=sy / h)[:, None]
+    kx = np.fft.rfftfreq(n2[1], d=sx / h)[None, :]
+    H = (np.hypot(ky, kx) + RAMP_FLOOR).astype(np.float32)
+
+    def M(v):
+        V = fft.rfft2(v, s=n2, axes=(1, 2), workers=-1)
+        V *= H
+        return np.ascontiguousarray(fft.irfft2(V, s=n2, axes=(1, 2), workers=-1)[:, :ny, :nx], dtype=np.float32)
+
+    return M
+
+
+def _power_iteration(shape, A, AT, M=None, n_iter: int = 3) -> float:
+    """Largest eigenvalue of ``AᵀA`` (``M AᵀA``) from below, by power iterations from the constant vector.
 
     ``A`` (``Π U``) has non-negative entries, so its top eigenvector is
     non-negative (Perron–Frobenius) and smooth, close to a constant: three
@@ -364,6 +406,8 @@ def _power_iteration(shape, A, AT, n_iter: int = 3) -> float:
     lip = 0.0
     for _ in range(n_iter):
         v = AT(A(v))
+        if M is not None:
+            v = M(v)
         lip = float(np.linalg.norm(v))
         if lip == 0.0:
             break
@@ -371,8 +415,12 @@ def _power_iteration(shape, A, AT, n_iter: int = 3) -> float:
     return lip
 
 
-def nonneg_ls_lipschitz(vol_geom: VolumeGeometry, geom: VectorGeometry, *, coarsen: int = 1, backend: str = "auto") -> float:
+def nonneg_ls_lipschitz(vol_geom: VolumeGeometry, geom: VectorGeometry, *, coarsen: int = 1, precondition: bool = False,
+                        backend: str = "auto") -> float:
     """The largest eigenvalue ``L`` of ``UᵀΠᵀΠU`` that :func:`nonneg_ls` steps by (3 power iterations from ones).
+
+    With ``precondition``, that of ``M UᵀΠᵀΠU`` (``M`` the ramp of
+    :func:`nonneg_ls`).
 
     It depends on the grid, ``coarsen`` and the geometry only (not on the
     data, the support or the weights); pass it as ``nonneg_ls(...,
@@ -380,5 +428,5 @@ def nonneg_ls_lipschitz(vol_geom: VolumeGeometry, geom: VectorGeometry, *, coars
     geometry.
     """
     f = _coarsen_factor(coarsen, vol_geom)
-    shape, _, _, A, AT = _spline_operator(vol_geom, geom, f, backend)
-    return _power_iteration(shape, A, AT)
+    shape, vg_c, _, A, AT = _spline_operator(vol_geom, geom, f, backend)
+    return _power_iteration(shape, A, AT, _ramp_preconditioner(shape, vg_c.voxel_size) if precondition else None)
