@@ -12,7 +12,10 @@
   cross-correlating opposite views, and :func:`offset_poses` turns it into
   per-view poses.
 * :func:`compare_models` scores motion models (:data:`MODELS`) on views
-  they were not fitted to: the default recipe's automatic model choice.
+  they were not fitted to: the default recipe's automatic model choice;
+* :func:`epipolar_refine` measures modes of the set-up by the epipolar
+  consistency of cone-beam view pairs, a criterion that does not go
+  through a reconstruction (a study tool: ``benchmarks/bench_modes.py --ecc``).
 
 The method and the reasons behind each default: ``docs/method.md``.
 """
@@ -23,6 +26,7 @@ from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views,
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
+from ._epipolar import EpipolarFit, EpipolarViews, epipolar_refine, epipolar_residuals, epipolar_views, view_pairs
 from ._truncation import (
     Truncation,
     air_to_subtract,
@@ -103,4 +107,10 @@ __all__ = [
     "ModelChoice",
     "MODELS",
     "MIN_MODEL_GAIN",
+    "EpipolarFit",
+    "EpipolarViews",
+    "epipolar_refine",
+    "epipolar_residuals",
+    "epipolar_views",
+    "view_pairs",
 ]
