@@ -88,7 +88,7 @@ def _epipolar_rows(p, geom, truth, calibrated, ref, angles, c, points, amplitude
     names = list(modes)
     fields = [Poses(*modes[k]).to_params(c) / eps for k in names]
     px = np.array([reprojection_error(geom.apply(Poses(*modes[k])), geom, points).rms / eps for k in names])
-    steps = 0.05 / px  # finite differences of 0.05 px on the detector: above the interpolation's kinks
+    steps = 0.05 / px  # finite differences of 0.05 px on the detector
     t0 = time.perf_counter()
     views, pairs = epipolar_views(p, geom), view_pairs(angles)
     at_truth = epipolar_refine(p, geom, truth, fields, center=c, angles=angles, views=views, pairs=pairs, steps=steps,
