@@ -88,7 +88,7 @@ OPTIONS: dict = {}
 # --air: an air level added to every case's line integrals (0: none); --zingers: a fraction of zinger pixels;
 # --rings: the amplitude of a fixed pattern of the detector (stripes in the sinograms, rings in the volume);
 # --phase, --hardening: what the line-integral model does not hold (edge fringes, cupping), before the noise
-AIR = {"drift": 0.0, "zingers": 0.0, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
+AIR = {"drift": 0.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG)
 SCAN = {"half_turn": False, "short_scan": False}
@@ -105,8 +105,34 @@ def add_zingers(p, fraction: float, seed: int):
     import numpy as np
 
     rng = np.random.default_rng([seed, 7])
+    if AIR["zinger_size"] > 1:
+        return add_zinger_blobs(p, fraction, AIR["zinger_size"], rng)
     hit = rng.random(p.shape) < fraction
     return np.where(hit, p - rng.uniform(0.5, 3.0, p.shape), p).astype(np.float32)
+
+
+def add_zinger_blobs(p, fraction: float, size: int, rng):
+    """Zingers that spread over a few pixels (a gamma or X-ray photon whose light the scintillator spreads, as in
+    neutron imaging): a core lowered by 0.5 to 3 as above, and each pixel of the ``size x size`` square around it
+    (``size`` odd) hit with probability 1/2 by a fraction 0.3 to 1 of the core's drop. ``fraction`` is the fraction
+    of the pixels hit, counting every pixel of a blob."""
+    import numpy as np
+
+    h = size // 2
+    per_blob = 1.0 + 0.5 * (size * size - 1)
+    n, nr, nc = p.shape
+    count = rng.poisson(fraction * p.size / per_blob)
+    v, r, c = rng.integers(0, n, count), rng.integers(0, nr, count), rng.integers(0, nc, count)
+    core = rng.uniform(0.5, 3.0, count)
+    drop = np.zeros(p.shape, np.float32)
+    for dr in range(-h, h + 1):
+        for dc in range(-h, h + 1):
+            f = np.ones(count) if dr == 0 and dc == 0 else \
+                (rng.random(count) < 0.5) * rng.uniform(0.3, 1.0, count)
+            rr, cc = r + dr, c + dc
+            ok = (rr >= 0) & (rr < nr) & (cc >= 0) & (cc < nc) & (f > 0)
+            np.maximum.at(drop, (v[ok], rr[ok], cc[ok]), (core * f)[ok].astype(np.float32))
+    return (p - drop).astype(np.float32)
 
 
 def ring_pattern(shape, amplitude: float, seed: int):
@@ -468,6 +494,8 @@ def header(args) -> list:
         f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
         + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
+        + (f", in blobs within {AIR['zinger_size']}x{AIR['zinger_size']} px (--zinger-size)"
+           if AIR["zingers"] and AIR["zinger_size"] > 1 else "")
         + (f"; a fixed pattern of std {AIR['rings']} per column (--rings)" if AIR["rings"] else "")
         + (f"; edge fringes, {AIR['phase']} x the Laplacian (--phase)" if AIR["phase"] else "")
         + (f"; beam hardening, line integrals lowered by {AIR['hardening']} x p / p99.9 (--hardening)"
@@ -558,6 +586,9 @@ def main(argv=None) -> int:
     ap.add_argument("--zingers", type=float, default=0.0, metavar="FRACTION",
                     help="zingers: this fraction of the pixels of every view, at random, with line integrals lowered "
                          "by 0.5 to 3 (default 0: none)")
+    ap.add_argument("--zinger-size", type=int, default=1, metavar="S",
+                    help="with --zingers: blobs within an S x S square (S odd), the core's neighbours hit with "
+                         "probability 1/2 by 0.3 to 1 of its drop (default 1: single pixels)")
     ap.add_argument("--rings", type=float, default=0.0, metavar="AMPLITUDE",
                     help="a fixed pattern in every view: random offsets of std AMPLITUDE per column and AMPLITUDE/2 per "
                          "pixel in the line integrals (a wrong flat field: rings; default 0: none)")
@@ -581,6 +612,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     AIR["drift"] = float(args.air)
     AIR["zingers"] = float(args.zingers)
+    if args.zinger_size < 1 or args.zinger_size % 2 == 0:
+        ap.error("--zinger-size must be a positive odd number")
+    AIR["zinger_size"] = int(args.zinger_size)
     AIR["rings"] = float(args.rings)
     AIR["phase"] = float(args.phase)
     AIR["hardening"] = float(args.hardening)

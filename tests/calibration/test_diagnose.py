@@ -51,3 +51,17 @@ def test_the_edges_of_a_misplaced_sample_are_structure_not_outliers():
     r = r + rng.normal(0, 0.1, r.shape)
     d = diagnose_residual(r, 0.01)
     assert d.outliers < 0.01
+
+
+def test_bright_groups_of_a_few_pixels_are_outliers():
+    """A zinger whose light spread over 2 x 2 px (line integral lowered) counts as outliers; the same groups reading
+    dark do not (no light source makes them; in a reconstruction's residual they are a zinger's streak)."""
+    rng = np.random.default_rng(4)
+    n = (30, 20, 40)
+    noise = rng.normal(0, 1.0, n)
+    blobs = np.zeros(n)
+    for v, r0, c0 in zip(rng.integers(0, n[0], 40), rng.integers(0, n[1] - 1, 40), rng.integers(0, n[2] - 1, 40)):
+        blobs[v, r0:r0 + 2, c0:c0 + 2] = -30.0
+    d = diagnose_residual(noise + blobs, 1.0)
+    assert d.outliers == pytest.approx(np.sum(blobs**2) / np.sum((noise + blobs) ** 2), rel=0.15)
+    assert diagnose_residual(noise - blobs, 1.0).outliers < 0.01

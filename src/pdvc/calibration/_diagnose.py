@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io._zingers import isolated_outliers
+from ..io._zingers import isolated_outliers, outlier_blobs
 
 __all__ = ["diagnose_residual", "ResidualDiagnosis"]
 
@@ -35,7 +35,8 @@ class ResidualDiagnosis:
     row_pattern : float
         A pattern of the detector rows that stays over views and columns.
     outliers : float
-        Isolated pixels beyond 6 robust standard deviations (zingers, hot or dead pixels).
+        Isolated pixels beyond 6 robust standard deviations, alone or in bright groups
+        of a few pixels (zingers, hot or dead pixels).
         A residual dominated by motion (the nominal geometry of a misaligned
         scan) puts its edges in ``structure`` and, for a constant offset of
         the axis, in ``column_pattern``: read the parts after calibration.
@@ -74,7 +75,8 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     each view, then the mean of each column over views and rows, then of
     each row, then the isolated pixels beyond 6 robust σ (1.4826 MAD; no
     4-neighbour beyond 3σ: a zinger is alone, the edge of a misplaced sample
-    is a line); the noise is
+    is a line) and the bright groups within 3 x 3 px with nothing beyond 3σ
+    around them (a zinger whose light spread); the noise is
     ``n γ²`` (capped at what is left), the structure the rest. Pixels with
     zero weight are left out.
     """
@@ -99,8 +101,12 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     r = np.where(w, r - rw[None, :, None], 0.0)
     vals = r[w]
     sigma = 1.4826 * float(np.median(np.abs(vals - np.median(vals)))) if vals.size else 0.0
-    # isolated: no 4-neighbour beyond 3 sigma (the edges of a misplaced sample are lines)
-    out = w & isolated_outliers(r, sigma, 6.0, ratio=np.inf) if sigma > 0 else np.zeros(r.shape, bool)
+    # isolated: no 4-neighbour beyond 3 sigma (the edges of a misplaced sample are lines), or a bright group within
+    # 3 x 3 px with nothing beyond 3 sigma around it (a zinger whose light spread)
+    out = np.zeros(r.shape, bool)
+    if sigma > 0:
+        out = w & (isolated_outliers(r, sigma, 6.0, ratio=np.inf)
+                   | (outlier_blobs(r, sigma, 6.0, ratio=np.inf, quiet=True)[0] > 0))
     e_out = float(np.sum(r[out] ** 2))
     rest = max(total - e_view - e_col - e_row - e_out, 0.0)
     e_noise = min(n_w * float(noise_variance), rest)

@@ -295,9 +295,9 @@ def calibrate(
         when the nominal reconstruction shows material in the end slices
         (:func:`detect_truncation`).
     zingers : {"auto", "off"}
-        ``"auto"``: find zingers, hot and dead pixels (isolated pixels far
-        from the reprojection of the nominal reconstruction,
-        :func:`pdvc.io.remove_zingers`) and replace them by the median of
+        ``"auto"``: find zingers, hot and dead pixels (isolated pixels, or
+        bright spots of 2-9 pixels, far from the reprojection of the nominal
+        reconstruction, :func:`pdvc.io.remove_zingers`) and replace them by the median of
         their neighbours before calibrating; the volume is then
         reconstructed again without them. The projections given are not
         modified; the calibration and its final volume use the copy.
@@ -595,7 +595,8 @@ def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
         g = geom if poses is None else geom.apply(poses)
         p, again = remove_zingers(p, forward(reconstruct(p, vol_geom, g), vol_geom, g))
         total = ZingerReport(total.count + again.count, total.fraction + again.fraction,
-                             max(total.views, again.views), total.sigma, total.threshold)
+                             max(total.views, again.views), total.sigma, total.threshold,
+                             blobs=total.blobs + again.blobs)
         vol_initial = reconstruct(p, vol_geom, geom)
     (log.warning if total.fraction > 1e-3 else log.info)("zingers: %s", total.describe())
     timings["zingers"] = time.perf_counter() - t0

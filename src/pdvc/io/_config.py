@@ -136,8 +136,9 @@ that type needs) are required; everything else has the default shown.
     init = "auto"               # "auto" | "axis" | "none": axis offset from opposite views first
     truncation = "auto"         # "auto" | "on" | "off": drop the rays that leave the volume through its top or
                                 # bottom face (a sample longer than the volume); "auto": when the sample reaches them
-    zingers = "auto"            # "auto" | "off": replace isolated pixels far from the reprojection of the nominal
-                                # reconstruction (zingers, hot and dead pixels) by their neighbours' median
+    zingers = "auto"            # "auto" | "off": replace isolated pixels and bright spots of 2-9 px far from the
+                                # reprojection of the nominal reconstruction (zingers, hot and dead pixels) by
+                                # their neighbours' median
     rings = "auto"              # "auto" | "on" | "off": subtract the detector's fixed pattern (a flat field wrong at
                                 # some columns: rings) from every view; "auto": when it holds 10 % of the residual at
                                 # the calibrated geometry, and then calibrate again
