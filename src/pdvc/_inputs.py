@@ -331,6 +331,25 @@ def _checked_geometry(geom: VectorGeometry, shape) -> VectorGeometry:
     return geom
 
 
+def _zinger_line(p, vol_geom, geom, volume) -> str:
+    """What ``zingers = "auto"`` would find at the nominal geometry (on every 8th view of a scan of 64 views or
+    more, as the calibration's first look)."""
+    from dataclasses import replace
+
+    from .calibration._pipeline import _ZINGER_PROBE_STEP
+    from .io import remove_zingers
+    from .projectors import forward
+
+    every = _ZINGER_PROBE_STEP if geom.n_views >= 8 * _ZINGER_PROBE_STEP else 1
+    _, rep = remove_zingers(p[::every], forward(volume, vol_geom, geom[::every]))
+    rep = replace(rep, every=every)
+    if not rep.count:
+        return f"zingers at the nominal geometry: {rep.describe()}"
+    where = f" on every {every}th view" if every > 1 else ""
+    return (f"zingers at the nominal geometry{where}: {rep.describe(replaced=False)}; calibrate replaces them by "
+            'the median of their neighbours (zingers = "auto")')
+
+
 def inspect_scan(config) -> tuple[list, list]:
     """Summary lines and a list of problems (empty when consistent)."""
     lines, problems = [], []
@@ -374,8 +393,12 @@ def inspect_scan(config) -> tuple[list, list]:
     from .calibration import detect_scan_truncation, field_cover
     from .calibration._pipeline import ROI_FIELD_COVER
 
-    trunc, _ = detect_scan_truncation(p, vg, g)  # read off the nominal reconstruction, an air level removed
+    from .recon import analytic
+
+    volume = analytic(p, vg, g)
+    trunc, _ = detect_scan_truncation(p, vg, g, volume)  # read off the nominal reconstruction, an air level removed
     lines.append(f"sample and volume: {trunc.describe()}")
+    lines.append(_zinger_line(p, vg, g, volume))
     if trunc.lateral:
         cover = field_cover(g, vg)
         lines.append(

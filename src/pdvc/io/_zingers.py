@@ -48,8 +48,8 @@ ZINGER_SIGMA = 6.0
 BLOB_SIZE = 3
 """A zinger's light spreads over at most a square of this side (pixels)."""
 
-_RIM = 0.2  # a blob's rim: its group's pixels next to the core beyond this fraction of the peak (the ramp filter's
-# spread of a strong zinger stays below about a tenth of it)
+_RIM = 0.2  # a blob's rim: its group's pixels next to the core beyond this fraction of the peak (the spot's faint
+# edge; it also takes the reconstruction's spread of the spot along the rows, up to a third of it on 48-60 views)
 
 _NEIGHBOUR_SIGMA = 3.0
 _NEIGHBOUR_RATIO = 2.5  # a zinger's neighbours hold at most this fraction of its residual (the FDK's ramp spreads a little)
@@ -69,15 +69,17 @@ class ZingerReport:
     every: int = 1  # checked on every k-th view only
     blobs: int = 0  # of them in groups of 2 or more pixels (a zinger's light spread over a few pixels)
 
-    def describe(self) -> str:
+    def describe(self, replaced: bool = True) -> str:
+        """One line; ``replaced``: say that they were replaced (False: only what was found)."""
         if not self.count:
             where = f" on every {self.every}th view" if self.every > 1 else ""
-            return f"none found{where} (no isolated pixel {self.threshold:g} robust std or more from the reprojection)"
+            return (f"none found{where} (no isolated pixel or bright spot {self.threshold:g} robust std or more from the "
+                    "reprojection)")
         groups = f"; {self.blobs} group(s) of 2-{BLOB_SIZE ** 2} px among them" if self.blobs else ""
         return (f"{self.count} isolated pixel(s) ({100 * self.fraction:.3g}% of the pixels, in {self.views} view(s)"
                 f"{groups}) "
-                f"{self.threshold:g} robust std or more from the reprojection (zingers, hot or dead pixels), replaced "
-                "by the median of their neighbours")
+                f"{self.threshold:g} robust std or more from the reprojection (zingers, hot or dead pixels)"
+                + (", replaced by the median of their neighbours" if replaced else ""))
 
 
 def isolated_outliers(z, sigma: float, k: float = ZINGER_SIGMA, ratio: float = _NEIGHBOUR_RATIO) -> np.ndarray:
