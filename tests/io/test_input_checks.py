@@ -308,4 +308,4 @@ def test_inspect_says_how_many_zingers_calibrate_would_replace(tmp_path, sim):
     # 100 pixels hit; a spot's rim also takes the ramp filter's spread of it along the rows (a third of its peak on
     # 60 views: 129 found, every zinger among them)
     assert 100 <= n <= 1.4 * 100, line
-    assert "group(s) of 2-9 px" in line and 'calibrate replaces them' in line
+    assert "spot(s) of 2-9 px" in line and 'calibrate replaces them' in line

@@ -75,9 +75,9 @@ class ZingerReport:
             where = f" on every {self.every}th view" if self.every > 1 else ""
             return (f"none found{where} (no isolated pixel or bright spot {self.threshold:g} robust std or more from the "
                     "reprojection)")
-        groups = f"; {self.blobs} group(s) of 2-{BLOB_SIZE ** 2} px among them" if self.blobs else ""
-        return (f"{self.count} isolated pixel(s) ({100 * self.fraction:.3g}% of the pixels, in {self.views} view(s)"
-                f"{groups}) "
+        what = f"pixel(s) isolated or in {self.blobs} spot(s) of 2-{BLOB_SIZE ** 2} px" if self.blobs else \
+            "isolated pixel(s)"
+        return (f"{self.count} {what} ({100 * self.fraction:.3g}% of the pixels, in {self.views} view(s)) "
                 f"{self.threshold:g} robust std or more from the reprojection (zingers, hot or dead pixels)"
                 + (", replaced by the median of their neighbours" if replaced else ""))
 
