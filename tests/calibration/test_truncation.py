@@ -107,6 +107,25 @@ def test_jolt_views_finds_local_dips_not_smooth_trends():
     assert jolt_views(smooth[:5]).size == 0
 
 
+def test_a_few_wild_pixels_make_no_jolt_once_each_view_drops_its_largest_residuals():
+    """A zinger left in one view makes its SNR dip as a jolt does; without each view's largest residuals it does not.
+    A jolt misplaces every edge of its views (here: a third of the pixels off by 2 std), and still dips."""
+    from pdvc.calibration import jolt_views
+    from pdvc.calibration._driver import trimmed_snr
+    from pdvc.correlation import snr_db
+
+    rng = np.random.default_rng(1)
+    s = rng.normal(0, 1.0, (60, 20, 30))  # the sample: signal std 1
+    r = rng.normal(0, 0.05, s.shape)  # the residual at the calibrated poses: noise
+    r[17, 5, 7:9] += 3.0  # a spot the zinger filter left
+    r[42, :, :10] += rng.choice([-0.1, 0.1], (20, 10))  # a jolt's views
+    plain = snr_db(s, r, axis=(1, 2))
+    assert set(jolt_views(plain).tolist()) == {17, 42}
+    clipped = trimmed_snr(s, r)
+    assert jolt_views(clipped).tolist() == [42]
+    assert abs(clipped[17] - np.median(clipped)) < 0.6 and np.median(clipped) - clipped[42] > 2.0
+
+
 def _air_scan(air):
     """A 180-degree parallel scan of a sample well inside its volume, with an air level (offset + column profile)."""
     from pdvc.simulate import EllipsoidPhantom, simulate_scan

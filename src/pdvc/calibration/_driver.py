@@ -33,6 +33,7 @@ from ..correlation import (
 )
 from ..correlation._background import auto_background
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
+from ..projectors import forward
 from ..recon import analytic, cgls, nonneg_ls, nonneg_ls_lipschitz, refined_grid, spline_upsample
 from ..status import Status
 from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
@@ -172,6 +173,32 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
     if not sigma > 0:
         return np.array([], int)
     return np.nonzero((dip > z * sigma) & (dip > min_drop_db))[0]
+
+
+#: jolt views are confirmed on the residual without each view's largest pixels, this fraction of them (and at least
+#: JOLT_TRIM_MIN): a zinger or spot the filter left makes its view's SNR dip as a jolt does, but a jolt misplaces
+#: every edge of its views
+JOLT_TRIM = 0.005
+JOLT_TRIM_MIN = 9
+
+
+def trimmed_snr(projections, residual, weights=None, trim: float = JOLT_TRIM, min_trim: int = JOLT_TRIM_MIN) -> np.ndarray:
+    """Per-view SNR (dB) with each view's ``max(min_trim, trim × its pixels)`` largest residuals (in absolute value,
+    about the view's median) left out: a few wild pixels cannot make a view's fit look poor."""
+    s = np.asarray(projections, np.float64)
+    r = np.asarray(residual, np.float64)
+    w = np.ones(s.shape, bool) if weights is None else np.broadcast_to(np.asarray(weights) > 0, s.shape)
+    out = np.full(s.shape[0], np.nan)
+    for k in range(s.shape[0]):
+        sk, rk = s[k][w[k]], r[k][w[k]]
+        m = rk.size - max(int(min_trim), int(trim * rk.size))
+        if m < 2:
+            continue
+        rk = rk - np.median(rk)
+        rk = rk[np.argpartition(np.abs(rk), m - 1)[:m]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[k] = 10.0 * np.log10(np.var(sk) / np.var(rk))
+    return out
 
 
 def reconstruct(projections, vol_geom: VolumeGeometry, geom: VectorGeometry, **kw) -> np.ndarray:
@@ -450,6 +477,8 @@ class _StageRun:
         status = Status.ROUNDS_DONE if st.until == "rounds" else Status.MAX_ITER
         if isinstance(st.basis, str) and st.basis == JOLT_BASIS:
             views = jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
+            if views.size:
+                views = self._jolts_confirmed(views)
             if views.size == 0:
                 log.info("stage %s: no view's fit stands out: no jolt, skipped", st.name)
                 if self.progress is not None:
@@ -567,6 +596,20 @@ class _StageRun:
             return entropy, True
         self.ent_best = entropy if self.ent_best is None else min(self.ent_best, entropy)
         return entropy, False
+
+    def _jolts_confirmed(self, views: np.ndarray) -> np.ndarray:
+        """The views whose SNR still dips without their largest residuals (:func:`trimmed_snr`), against the volume the
+        stage's first round then reuses."""
+        st, ctx = self.stage, self.ctx
+        p, g, vg, w, _ = ctx.at_scale(st.scale)
+        g_p = g.apply(self.poses)
+        self.volume = (self.poses, correlation_volume(p, vg, g_p, st, weights=w, lipschitz=ctx.lipschitz))
+        res = p - forward(self.volume[1], refined_grid(vg, st.oversample), g_p, backend=ctx.backend)
+        kept = jolt_views(trimmed_snr(p, res, w))
+        if kept.size < views.size:
+            log.info("stage %s: views %s dip in SNR; without each view's %.2g %% largest residuals %s", st.name,
+                     views.tolist(), 100 * JOLT_TRIM, f"only {kept.tolist()} do" if kept.size else "none does (outlier pixels)")
+        return kept
 
     def _correlate(self, again: bool = False) -> CorrelationResult:
         """The round's measurement against a fresh reconstruction at its poses (``again``: the same one)."""
