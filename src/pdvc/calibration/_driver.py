@@ -185,12 +185,11 @@ JOLT_TRIM_MIN = 9
 def trimmed_snr(projections, residual, weights=None, trim: float = JOLT_TRIM, min_trim: int = JOLT_TRIM_MIN) -> np.ndarray:
     """Per-view SNR (dB) with each view's ``max(min_trim, trim × its pixels)`` largest residuals (in absolute value,
     about the view's median) left out: a few wild pixels cannot make a view's fit look poor."""
-    s = np.asarray(projections, np.float64)
-    r = np.asarray(residual, np.float64)
+    s, r = np.asarray(projections), np.asarray(residual)
     w = np.ones(s.shape, bool) if weights is None else np.broadcast_to(np.asarray(weights) > 0, s.shape)
     out = np.full(s.shape[0], np.nan)
-    for k in range(s.shape[0]):
-        sk, rk = s[k][w[k]], r[k][w[k]]
+    for k in range(s.shape[0]):  # a view at a time, in float64
+        sk, rk = s[k][w[k]].astype(np.float64), r[k][w[k]].astype(np.float64)
         m = rk.size - max(int(min_trim), int(trim * rk.size))
         if m < 2:
             continue
