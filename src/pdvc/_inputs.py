@@ -332,20 +332,18 @@ def _checked_geometry(geom: VectorGeometry, shape) -> VectorGeometry:
 
 
 def _zinger_line(p, vol_geom, geom, volume) -> str:
-    """What ``zingers = "auto"`` would find at the nominal geometry (on every 8th view of a scan of 64 views or
-    more, as the calibration's first look)."""
-    from dataclasses import replace
-
-    from .calibration._pipeline import _ZINGER_PROBE_STEP
+    """What ``zingers = "auto"`` would find at the nominal geometry, looking first as the calibration does (on
+    every 8th view of a scan of 64 views or more)."""
+    from .calibration._pipeline import zinger_probe
     from .io import remove_zingers
     from .projectors import forward
 
-    every = _ZINGER_PROBE_STEP if geom.n_views >= 8 * _ZINGER_PROBE_STEP else 1
-    _, rep = remove_zingers(p[::every], forward(volume, vol_geom, geom[::every]))
-    rep = replace(rep, every=every)
+    rep = zinger_probe(p, volume, vol_geom, geom)
+    if rep is None:
+        rep = remove_zingers(p, forward(volume, vol_geom, geom))[1]
     if not rep.count:
         return f"zingers at the nominal geometry: {rep.describe()}"
-    where = f" on every {every}th view" if every > 1 else ""
+    where = f" on every {rep.every}th view" if rep.every > 1 else ""
     return (f"zingers at the nominal geometry{where}: {rep.describe(replaced=False)}; calibrate replaces them by "
             'the median of their neighbours (zingers = "auto")')
 

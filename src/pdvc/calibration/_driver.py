@@ -601,9 +601,8 @@ class _StageRun:
         stage's first round then reuses."""
         st, ctx = self.stage, self.ctx
         p, g, vg, w, _ = ctx.at_scale(st.scale)
-        g_p = g.apply(self.poses)
-        self.volume = (self.poses, correlation_volume(p, vg, g_p, st, weights=w, lipschitz=ctx.lipschitz))
-        res = p - forward(self.volume[1], refined_grid(vg, st.oversample), g_p, backend=ctx.backend)
+        self.volume = (self.poses, ctx.stage_volume(st, self.poses))
+        res = p - forward(self.volume[1], refined_grid(vg, st.oversample), g.apply(self.poses), backend=ctx.backend)
         kept = jolt_views(trimmed_snr(p, res, w))
         if kept.size < views.size:
             log.info("stage %s: views %s dip in SNR; without each view's %.2g %% largest residuals %s", st.name,

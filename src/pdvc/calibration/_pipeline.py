@@ -566,6 +566,19 @@ def _rings(p, noise_variance, timings):
 _ZINGER_PROBE_STEP = 8
 
 
+def zinger_probe(p, volume, vol_geom, geom):
+    """:func:`pdvc.io.remove_zingers`'s report on every ``_ZINGER_PROBE_STEP``-th view against the reprojection
+    of ``volume`` (zingers are spread over the views, a hot pixel is in all of them), or None for a scan too
+    short to be probed (fewer than 8 such views)."""
+    from ..io import remove_zingers
+
+    if geom.n_views < 8 * _ZINGER_PROBE_STEP:
+        return None
+    sub = slice(None, None, _ZINGER_PROBE_STEP)
+    _, probe = remove_zingers(p[sub], forward(volume, vol_geom, geom[sub]))
+    return replace(probe, every=_ZINGER_PROBE_STEP)
+
+
 def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
     """(projections, nominal volume, ZingerReport or None): zingers replaced when ``mode`` is "auto".
 
@@ -581,15 +594,11 @@ def _zingers(mode, p, vol_geom, geom, vol_initial, timings, poses=None):
     from ..io import ZingerReport, remove_zingers
 
     t0 = time.perf_counter()
-    n = geom.n_views
-    if n >= 8 * _ZINGER_PROBE_STEP:  # every k-th view first: on a scan without zingers that is all it costs
-        sub = slice(None, None, _ZINGER_PROBE_STEP)
-        _, probe = remove_zingers(p[sub], forward(vol_initial, vol_geom, geom[sub]))
-        if not probe.count:
-            probe = replace(probe, every=_ZINGER_PROBE_STEP)
-            log.info("zingers: %s", probe.describe())
-            timings["zingers"] = time.perf_counter() - t0
-            return p, vol_initial, probe
+    probe = zinger_probe(p, vol_initial, vol_geom, geom)  # on a scan without zingers that is all it costs
+    if probe is not None and not probe.count:
+        log.info("zingers: %s", probe.describe())
+        timings["zingers"] = time.perf_counter() - t0
+        return p, vol_initial, probe
     p, total = remove_zingers(p, forward(vol_initial, vol_geom, geom))
     if total.count:
         g = geom if poses is None else geom.apply(poses)
