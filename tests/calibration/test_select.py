@@ -7,7 +7,7 @@ import pytest
 
 import pdvc
 from pdvc.calibration import MODELS, ModelChoice, Stage, StageError, compare_models, recipe_stages, run_stages
-from pdvc.calibration._select import halves, model_name, with_model
+from pdvc.calibration._select import MIN_MODEL_GAIN, OWN_MODEL_GAIN, halves, model_name, pick_model, with_model
 from pdvc.correlation import estimate_noise_variance
 from pdvc.geometry import Poses, fix_gauge, reprojection_error
 from tests.correlation.cases import make_case
@@ -127,13 +127,41 @@ def test_the_driver_chooses_once_before_the_model_runs_the_winner_and_keeps_the_
     assert [h["model"] for h in again.history] == models
 
 
-def test_the_driver_keeps_its_own_model_on_an_offset_axis():
+def test_the_driver_keeps_its_own_model_on_an_offset_axis_and_takes_the_fixed_axis_when_it_is_a_candidate():
     c = _case48("offset")  # measured: the precession model predicts 0.28 % better, below MIN_MODEL_GAIN
     stages = recipe_stages("default", c.scan.geometry.det_shape, scales=(1,), max_outer=3, jolts=False)
     out = _run(c, stages)
     assert out.model_choice.winner == "axis" and not out.model_choice.changed and out.model_choice.gain == 0.0
+    assert out.model_choice.text().startswith("axis kept: no candidate")
     assert {h["model"] for h in out.history[1:]} == {"axis"} and [o.name for o in out.stages] == ["warmup", "model"]
     assert _error(c, out.poses) < 0.02
+    # measured from the warm-up's poses: the axis model predicts the views it was not fitted to 0.1 % worse than
+    # the fixed axis (it needs OWN_MODEL_GAIN), the precession model 0.1 % better than that (it needs MIN_MODEL_GAIN)
+    fixed = recipe_stages("default", c.scan.geometry.det_shape, scales=(1,), max_outer=3, jolts=False,
+                          candidates=("fixed_axis", "precession"))
+    out = _run(c, fixed)
+    ch = out.model_choice
+    assert ch.winner == "fixed_axis" and ch.changed and ch.simpler and ch.own == "axis"
+    assert set(ch.scores) == {"axis", "fixed_axis", "precession"} and ch.sizes == {"fixed_axis": 5, "axis": 20, "precession": 35}
+    assert ch.text().startswith("fixed_axis: predicts the views it was not fitted to as well as axis, with fewer parameters")
+    assert {h["model"] for h in out.history[1:]} == {"fixed_axis"} and [o.name for o in out.stages] == ["warmup", "model:fixed_axis"]
+    assert _error(c, out.poses) < 0.02
+
+
+def test_pick_model_takes_the_simplest_model_no_richer_one_beats_by_its_threshold():
+    sizes = {"fixed_axis": 5, "axis": 20, "precession": 35}
+    assert OWN_MODEL_GAIN < MIN_MODEL_GAIN
+    pick = lambda f, a, p: pick_model({"fixed_axis": f, "axis": a, "precession": p}, sizes, "axis")  # noqa: E731
+    assert pick(1.0, 1.0, 1.0) == "fixed_axis"  # ties: the simplest
+    assert pick(1.0, 0.997, 0.995) == "fixed_axis"  # the own model 0.3 % better (< 0.4 %), precession 0.5 % (< 0.7 %)
+    assert pick(1.0, 0.995, 0.99) == "axis"  # axis 0.5 % better; precession only 0.5 % better than axis
+    assert pick(1.0, 0.995, 0.98) == "precession"  # 1.5 % better than axis
+    assert pick(1.0, 0.998, 0.99) == "precession"  # axis not kept, but precession 1 % better than the fixed axis
+    assert pick(1.0, 1.01, 0.994) == "fixed_axis"  # compared with the model chosen so far: 0.6 % < 0.7 %
+    # the own model first among equal sizes; a candidate alone against it
+    assert pick_model({"own": 1.0, "other": 0.999}, {"own": 5, "other": 5}, "own") == "own"
+    assert pick_model({"axis": 1.0, "precession": 0.992}, sizes, "axis") == "precession"
+    assert pick_model({"axis": 1.0, "precession": 0.994}, sizes, "axis") == "axis"
 
 
 def test_calibrate_reports_the_model_it_chose():
@@ -151,6 +179,8 @@ def test_candidates_are_a_config_key(tmp_path):
     assert load_config(raw(candidates=[]), base_dir=tmp_path).calibration.recipe_parameters() == {"candidates": ()}
     cfg = load_config(raw(candidates=["precession"]), base_dir=tmp_path)
     assert cfg.calibration.recipe_parameters() == {"candidates": ("precession",)}
+    cfg = load_config(raw(candidates=["fixed_axis", "precession"]), base_dir=tmp_path)
+    assert cfg.calibration.recipe_parameters() == {"candidates": ("fixed_axis", "precession")}
     for bad in (["wobble"], "precession", ["precession", "precession"]):
         with pytest.raises(ConfigError, match=r"calibration\.candidates"):
             load_config(raw(candidates=bad), base_dir=tmp_path)
@@ -172,3 +202,38 @@ def test_too_few_views_to_compare_keep_the_model_and_say_why():
     assert ch.winner == "axis" and not ch.scores and "cannot determine precession" in ch.note
     res = pdvc.calibrate(c.scan.projections, g, c.vol_geom, max_outer=2)  # runs, and says so
     assert "not compared" in res.options["model"]
+
+
+def test_simpler_candidates_are_not_compared_on_a_short_scan():
+    from pdvc.calibration._init import opposite_fraction
+    from pdvc.geometry import parallel
+
+    full = parallel(np.linspace(0, 2 * np.pi, 90, endpoint=False), det_shape=(8, 10), pixel=1.0)
+    half = parallel(np.linspace(0, np.pi, 91, endpoint=False), det_shape=(8, 10), pixel=1.0)
+    assert opposite_fraction(full) == 1.0 and opposite_fraction(half) < 0.1
+    # the reason given leaves out the models simpler than the own one, and the choice says why
+    c = _case("offset")
+    g = c.scan.geometry
+    kw = dict(noise_variance=estimate_noise_variance(c.scan.projections), angles=np.linspace(0, 2 * np.pi, g.n_views, endpoint=False),
+              center=c.vol_geom.offset, own_name="axis", max_iter=2)
+    cands = {k: dict(MODELS[k]) for k in ("fixed_axis", "precession")}
+    ch = compare_models(c.truth, c.vol_geom, c.scan.projections, g, Poses.identity(g.n_views), dict(MODELS["axis"]), cands,
+                        skip_simpler="a short scan", **kw)
+    assert set(ch.scores) == {"axis", "precession"} and ch.note == "fixed_axis left out: a short scan"
+    assert ch.text().endswith("; fixed_axis left out: a short scan")
+    only = compare_models(c.truth, c.vol_geom, c.scan.projections, g, Poses.identity(g.n_views), dict(MODELS["axis"]),
+                          {"fixed_axis": cands["fixed_axis"]}, skip_simpler="a short scan", **kw)
+    assert only.winner == "axis" and not only.scores and only.text() == "axis (not compared: fixed_axis left out: a short scan)"
+
+
+def test_the_driver_leaves_simpler_candidates_out_on_a_half_turn():
+    from pdvc.geometry import parallel
+
+    c = _case("offset")  # the phantom and grid; the scan made again over half a turn of parallel beam
+    g = parallel(np.linspace(0, np.pi, 48, endpoint=False), det_shape=c.scan.geometry.det_shape, pixel=1.0)
+    p = pdvc.forward(c.truth, c.vol_geom, g)
+    stages = recipe_stages("default", g.det_shape, scales=(1,), max_outer=1, jolts=False, candidates=("fixed_axis", "precession"))
+    out = run_stages(p, g, c.vol_geom, stages, noise_variance=1e-4)
+    ch = out.model_choice
+    assert "fixed_axis" not in ch.scores and set(ch.scores) == {"axis", "precession"}
+    assert ch.note.startswith("fixed_axis left out: a short scan (0 % of the views have an opposite view)")

@@ -39,7 +39,7 @@ from ._truncation import (
     truncation_weights,
 )
 from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages, short_scan_reconstruction
-from ._select import MIN_MODEL_GAIN, MODELS, ModelChoice, compare_models
+from ._select import MIN_MODEL_GAIN, MODELS, OWN_MODEL_GAIN, ModelChoice, compare_models
 from ._stages import (
     GUARDS,
     RECIPES,
@@ -107,6 +107,7 @@ __all__ = [
     "ModelChoice",
     "MODELS",
     "MIN_MODEL_GAIN",
+    "OWN_MODEL_GAIN",
     "EpipolarFit",
     "EpipolarViews",
     "epipolar_refine",

@@ -36,6 +36,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..projectors import forward
 from ..recon import analytic, cgls, nonneg_ls, nonneg_ls_lipschitz, refined_grid, spline_upsample
 from ..status import Status
+from ._init import SHORT_SCAN_OPPOSITE_FRACTION, opposite_fraction
 from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
 from ._stages import JOLT_BASIS, Stage, StageError
 
@@ -279,6 +280,11 @@ class _Context:
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
         self.offset_sigma = float("nan")
         self.model_choice: Optional[ModelChoice] = None  # stages with candidates: decided at the first one, then kept
+        # over half a turn the reconstruction takes up smooth motions and the views left out no longer tell a simpler
+        # model from the stage's own (docs/method.md §5.12): simpler candidates are compared on full scans only
+        frac = opposite_fraction(geom)
+        self.short_scan = "" if frac >= SHORT_SCAN_OPPOSITE_FRACTION else \
+            f"a short scan ({100 * frac:.0f} % of the views have an opposite view) cannot tell them apart"
 
     def with_model(self, stage: Stage) -> Stage:
         """The stage with the motion model chosen (stages with ``candidates``, once a choice was made)."""
@@ -300,7 +306,7 @@ class _Context:
             dict(basis=stage.basis, frame=stage.frame, fixed=stage.fixed), {c: model_fields(c) for c in stage.candidates},
             noise_variance=gamma2, weights=w, angles=self.angles, times=self.times, center=self.center,
             background=stage_background(stage, self.auto_background), backend=self.backend, max_iter=stage.max_iter,
-            own_name=own,
+            own_name=own, skip_simpler=self.short_scan,
         )
         return self.model_choice
 

@@ -127,6 +127,17 @@ def _mismatch(theta: np.ndarray, i: int) -> np.ndarray:
     return (theta - theta[i]) % (2 * np.pi) - np.pi
 
 
+#: a scan where fewer views than this have an opposite view is a short scan (docs/method.md §6)
+SHORT_SCAN_OPPOSITE_FRACTION = 0.5
+
+
+def opposite_fraction(geom: VectorGeometry) -> float:
+    """The fraction of the views that have an opposite view (within half an angular step): 1 for a full turn,
+    about 0 for a parallel scan over [0°, 180°)."""
+    pairs, _ = _opposite_pairs(_scan_angles(geom), None)
+    return 2.0 * pairs.shape[0] / geom.n_views
+
+
 def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.ndarray, float]:
     """Unordered pairs ``(i, j)``, ``i < j``, with ``θ_j`` nearest to ``θ_i + π`` within the tolerance."""
     n = theta.size

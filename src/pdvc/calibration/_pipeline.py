@@ -31,6 +31,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
+from ._init import SHORT_SCAN_OPPOSITE_FRACTION, opposite_fraction
 from ._driver import PosesResult, correlation_volume, data_at_scale, reconstruct, refined_grid, run_stages, stage_background
 from ._outer import gauge_text
 from ._select import with_model
@@ -169,10 +170,6 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
         raise CalibrationError(str(exc)) from None
 
 
-# a scan where fewer views than this have an opposite view is a short scan (docs/method.md §6)
-SHORT_SCAN_OPPOSITE_FRACTION = 0.5
-
-
 def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tuple[dict, Optional[str]]:
     """The model overrides with ``reconstruct = "nonneg_ls"`` for a short scan, and why (None: unchanged).
 
@@ -187,10 +184,7 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     """
     if stages is not None or model.get("reconstruct") is not None:
         return model, None
-    from ._init import _opposite_pairs, _scan_angles
-
-    pairs, _ = _opposite_pairs(_scan_angles(geom), None)
-    frac = 2 * pairs.shape[0] / geom.n_views
+    frac = opposite_fraction(geom)
     if frac >= SHORT_SCAN_OPPOSITE_FRACTION:
         return model, None
     analytic = "FBP" if geom.kind == "parallel" else "FDK"

@@ -6,10 +6,13 @@ stage's own model and every candidate measure an increment on one half of
 the views and predict the other half; the data consistency of those
 predictions (χ² of the views left out, against the correlation volume the
 stage's first round makes anyway) scores each model. Both halves take each
-role (two-fold cross-validation by interleaved blocks of views). A candidate
-replaces the stage's own model only when it lowers that score by more than
-``MIN_MODEL_GAIN``: a richer model has to predict views it never saw better,
-not merely fit more (``docs/method.md`` §5.12).
+role (two-fold cross-validation by interleaved blocks of views). The models
+are taken from the simplest (fewest free functions) up, and a richer one is
+kept only when it lowers the score of the simpler one chosen so far by more
+than its threshold (``MIN_MODEL_GAIN`` for a candidate, ``OWN_MODEL_GAIN``
+for the stage's own model against a simpler candidate): a richer model has
+to predict views it never saw better, not merely fit more
+(``docs/method.md`` §5.12).
 """
 
 from __future__ import annotations
@@ -27,18 +30,23 @@ from ..geometry import Poses, sample_points
 
 log = logging.getLogger("pdvc.calibration")
 
-__all__ = ["MODELS", "MIN_MODEL_GAIN", "ModelChoice", "compare_models", "model_fields", "model_name", "with_model"]
+__all__ = ["MODELS", "MIN_MODEL_GAIN", "OWN_MODEL_GAIN", "ModelChoice", "compare_models", "pick_model", "model_fields",
+           "model_name", "with_model"]
 
 #: Named motion models a stage can list as candidates: (basis, frame, fixed).
 MODELS = {
+    # an offset axis, tilted in the lab and fixed over the scan: nothing else moves (what beamline tools fit)
+    "fixed_axis": dict(basis="constant", frame="lab", fixed=("rz",)),
     # a tilted, offset axis and a slow drift (the default recipe's model)
     "axis": dict(basis="fourier:1", frame="sample", fixed=("rz",)),
     # a precessing axis (one and two cycles per turn in the lab) and a drift with acceleration; the precession
     # recipe's volume (consistent on non-planar orbits) and entropy guard (the near-gauge rotation modes)
     "precession": dict(basis="drift:2", frame="lab", fixed=("rz",), reconstruct="nonneg_ls", guards=("consistency", "entropy")),
 }
-#: A candidate must lower the cross-validated χ² of the stage's own model by more than this fraction.
+#: A candidate must lower the cross-validated χ² of the simpler model chosen so far by more than this fraction.
 MIN_MODEL_GAIN = 0.007
+#: The stage's own model must lower a simpler candidate's cross-validated χ² by more than this fraction to be kept.
+OWN_MODEL_GAIN = 0.004
 # interleaved blocks of views: each half holds every other block
 _BLOCKS = 16
 # the fewest views a half may hold for a comparison
@@ -80,7 +88,8 @@ class ModelChoice:
         Cross-validated χ² of each model (mean of the views left out, noise
         variance 1), in the order compared.
     gain : float
-        Relative decrease of the winner's score against the own model's (0 if it kept its own).
+        Relative decrease of the winner's score against the own model's (0 if
+        it kept its own; negative or small when a simpler model won).
     n_views : int
     n_passes : int
         Jacobian passes spent (fits and scores).
@@ -89,9 +98,17 @@ class ModelChoice:
         sample points between each model's predictions and the stage's
         poses, over the views left out (gauge-free).
     min_gain : float
-        The gain a candidate had to exceed.
+        The gain a candidate had to exceed over a simpler model.
     note : str
         Why a model was not compared ("" when all were).
+    simpler : bool
+        The winner is simpler than the own model (fewer free functions): the
+        own model did not predict better than it by more than ``own_gain``.
+    own_gain : float
+        The gain the own model had to exceed over a simpler candidate.
+    sizes : dict
+        Free functions of each model compared (basis functions times free
+        parameters): what "simpler" means.
     """
 
     winner: str
@@ -103,6 +120,9 @@ class ModelChoice:
     shifts_px: dict = field(default_factory=dict)
     min_gain: float = MIN_MODEL_GAIN
     note: str = ""
+    simpler: bool = False
+    own_gain: float = OWN_MODEL_GAIN
+    sizes: dict = field(default_factory=dict)
 
     @property
     def changed(self) -> bool:
@@ -111,16 +131,32 @@ class ModelChoice:
     def text(self) -> str:
         if not self.scores:
             return f"{self.winner} (not compared{': ' + self.note if self.note else ''})"
+        return self._verdict() + (f"; {self.note}" if self.note else "")
+
+    def _verdict(self) -> str:
         parts = ", ".join(f"{k} {v:.4g}" for k, v in self.scores.items())
+        if self.changed and self.simpler:
+            lead = 1.0 - self.scores[self.own] / self.scores[self.winner] if self.scores.get(self.winner) else 0.0
+            how = f"{100 * lead:.2g} % better, not more than {100 * self.own_gain:.2g} %" if lead > 0 else \
+                f"{100 * -lead:.2g} % worse"
+            return f"{self.winner}: predicts the views it was not fitted to as well as {self.own}, with fewer parameters " \
+                   f"({self.own}: {how}; cross-validated chi^2: {parts})"
         if self.changed:
             return f"{self.winner}: predicts the views it was not fitted to {100 * self.gain:.2g} % better than {self.own} " \
                    f"(cross-validated chi^2: {parts})"
-        return f"{self.own} kept: no candidate predicts the views it was not fitted to more than {100 * self.min_gain:.2g} % better " \
-               f"(cross-validated chi^2: {parts})"
+        simpler = [k for k in self.scores if k in self.sizes and self.sizes[k] < self.sizes.get(self.own, 0)]
+        beats = " and ".join(f"{100 * (1.0 - self.scores[self.own] / self.scores[k]):.2g} % better than {k}" for k in simpler
+                             if self.scores[k] > 0)
+        return f"{self.own} kept: it predicts the views it was not fitted to {beats} (more than {100 * self.own_gain:.2g} %), " \
+               f"and no richer candidate more than {100 * self.min_gain:.2g} % better than it (cross-validated chi^2: {parts})" \
+            if simpler else \
+               f"{self.own} kept: no candidate predicts the views it was not fitted to more than {100 * self.min_gain:.2g} % " \
+               f"better (cross-validated chi^2: {parts})"
 
     def to_dict(self) -> dict:
         return dict(winner=self.winner, own=self.own, scores=dict(self.scores), gain=self.gain, n_views=self.n_views,
-                    n_passes=self.n_passes, shifts_px=dict(self.shifts_px), min_gain=self.min_gain, note=self.note)
+                    n_passes=self.n_passes, shifts_px=dict(self.shifts_px), min_gain=self.min_gain, note=self.note,
+                    simpler=self.simpler, own_gain=self.own_gain, sizes=dict(self.sizes))
 
 
 def halves(n_views: int, blocks: int = _BLOCKS) -> tuple:
@@ -134,12 +170,30 @@ def _subset(x, idx):
     return x[idx] if x is not None and np.ndim(x) == 3 else x
 
 
+def pick_model(scores: dict, sizes: dict, own: str, *, min_gain: float = MIN_MODEL_GAIN, own_gain: float = OWN_MODEL_GAIN) -> str:
+    """The model kept from cross-validated ``scores``: from the simplest (smallest ``sizes``, the ``own`` model first
+    among equals) up, a richer model replaces the one chosen so far when it scores lower by more than ``min_gain``
+    (``own_gain`` for the own model) of that one's score."""
+    order = sorted(scores, key=lambda k: (sizes[k], k != own))
+    winner = order[0]
+    for k in order[1:]:
+        if scores[k] < scores[winner] * (1.0 - (own_gain if k == own else min_gain)):
+            winner = k
+    return winner
+
+
 def compare_models(
     volume, vol_geom, projections, geom, poses: Poses, own: dict, candidates: dict, *, noise_variance: float,
     weights=None, angles, times=None, center, background: Optional[int] = None, backend: str = "auto",
-    max_iter: int = 6, min_gain: float = MIN_MODEL_GAIN, own_name: str = "own",
+    max_iter: int = 6, min_gain: float = MIN_MODEL_GAIN, own_gain: float = OWN_MODEL_GAIN, own_name: str = "own",
+    skip_simpler: str = "",
 ) -> ModelChoice:
     """Score the models on views they were not fitted to; return the winner.
+
+    From the simplest model (fewest free functions: basis functions times
+    free parameters) up, a richer model replaces the one chosen so far when
+    its score is lower by more than ``min_gain`` (``own_gain`` for the own
+    model) of that one's.
 
     Parameters
     ----------
@@ -149,6 +203,9 @@ def compare_models(
         Data and geometry of the stage's scale; ``poses`` is relative to ``geom``.
     own, candidates
         ``dict(basis=, frame=, fixed=)`` of the stage's model, and named candidates.
+    skip_simpler : str
+        Non-empty: the reason why candidates simpler than the own model are
+        not compared (the choice's ``note`` says it).
     """
     n = geom.n_views
     angles = np.asarray(angles, float)
@@ -159,15 +216,27 @@ def compare_models(
         return ModelChoice(winner=own_name, own=own_name, n_views=n, min_gain=float(min_gain), note=f"{n} views")
     folds = halves(n)
     bases = {k: make_basis(m["basis"], angles=angles, times=t_all).matrix for k, m in models.items()}
+    size = {k: bases[k].shape[1] * (6 - len(set(models[k]["fixed"]))) for k in models}
+    skipped = ""
+    if skip_simpler:
+        drop = [k for k in models if size[k] < size[own_name]]
+        if drop:
+            skipped = f"{', '.join(drop)} left out: {skip_simpler}"
+            log.info("motion model: %s", skipped)
+            models = {k: m for k, m in models.items() if k not in drop}
+            if len(models) == 1:
+                return ModelChoice(winner=own_name, own=own_name, n_views=n, min_gain=float(min_gain), note=skipped)
     # each half must determine a model's increment (two views per function at least), or the model is not compared
     few = min(f.size for f in folds)
-    short = [k for k, S in bases.items() if few < max(2 * S.shape[1], _MIN_HALF)]
+    short = [k for k in models if few < max(2 * bases[k].shape[1], _MIN_HALF)]
     if short:
         note = f"half of the {n} views ({few}) cannot determine {', '.join(short)}"
         log.info("motion model: %s not compared: %s", ", ".join(short), note)
+        note = "; ".join(x for x in (skipped, note) if x)
         if own_name in short or len(short) == len(models) - 1:
             return ModelChoice(winner=own_name, own=own_name, n_views=n, min_gain=float(min_gain), note=note)
         models = {k: m for k, m in models.items() if k not in short}
+        skipped = note
     start = poses.gauge_fixed(geom, center=np.asarray(center, float))
     rss = {k: 0.0 for k in models}
     wsum = {k: 0.0 for k in models}
@@ -211,11 +280,11 @@ def compare_models(
             wsum[name] += float(red.weight_sum.sum())
     scores = {k: rss[k] / (max(wsum[k], 1e-300) * noise_variance) for k in models}
     shifts = {k: float(np.sqrt(moved[k] / n)) for k in models}
-    best = min(scores, key=scores.get)
-    gain = 1.0 - scores[best] / scores[own_name] if scores[own_name] > 0 else 0.0
-    winner = best if best != own_name and gain > min_gain else own_name
-    choice = ModelChoice(winner=winner, own=own_name, scores=scores, gain=gain if winner != own_name else 0.0, n_views=n,
-                         n_passes=passes, shifts_px=shifts, min_gain=float(min_gain))
+    winner = pick_model(scores, size, own_name, min_gain=min_gain, own_gain=own_gain)
+    gain = 1.0 - scores[winner] / scores[own_name] if winner != own_name and scores[own_name] > 0 else 0.0
+    choice = ModelChoice(winner=winner, own=own_name, scores=scores, gain=gain, n_views=n, n_passes=passes, shifts_px=shifts,
+                         min_gain=float(min_gain), simpler=bool(size[winner] < size[own_name]), own_gain=float(own_gain),
+                         sizes={k: int(size[k]) for k in models}, note=skipped)
     log.info("motion model: %s", choice.text())
     log.debug("motion model: each model's predictions moved the sample by %s px (gauge-free RMS, the views left out)",
               {k: round(v, 4) for k, v in shifts.items()})

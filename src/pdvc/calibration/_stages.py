@@ -142,13 +142,16 @@ class Stage:
         default: it reaches the loop's own fixed point sooner, which is not
         always nearer the truth (``docs/method.md`` §5.6).
     candidates : tuple of str
-        Named motion models (:data:`pdvc.calibration.MODELS`: ``"axis"``,
-        ``"precession"``) compared with the stage's own before its first
-        round, from the poses it starts from, on views they were not fitted
-        to (:func:`compare_models`); a candidate that predicts them better
-        by more than ``MIN_MODEL_GAIN`` replaces the stage's model, and
-        every later stage that lists candidates takes it. Once per run, at
-        the first such stage. Empty (default for a stage): no choice.
+        Named motion models (:data:`pdvc.calibration.MODELS`:
+        ``"fixed_axis"``, ``"axis"``, ``"precession"``) compared with the
+        stage's own before its first round, from the poses it starts from,
+        on views they were not fitted to (:func:`compare_models`). From the
+        simplest up, a richer model is kept only when it predicts them
+        better than the simpler one by more than ``MIN_MODEL_GAIN`` (the
+        stage's own model: ``OWN_MODEL_GAIN``; on a short scan simpler
+        candidates are not compared); the winner replaces the stage's model,
+        and every later stage that lists candidates takes it. Once per run,
+        at the first such stage. Empty (default for a stage): no choice.
     robust : float or None
         Huber's cut on the residual, in its robust standard deviation
         (:func:`pdvc.correlate`'s ``robust``): every Jacobian pass weighs

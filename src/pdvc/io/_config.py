@@ -117,7 +117,8 @@ that type needs) are required; everything else has the default shown.
     # background = "auto"       # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane,
                                 # 2 quadratic; "auto": a plane when the residual's per-view offset is well above the noise
     # candidates = ["precession"]  # default recipe: motion models compared with its own ("axis") on views they were
-                                # not fitted to, before the model stage; [] = none (also when basis/frame/fixed are set)
+                                # not fitted to, before the model stage; [] = none (also when basis/frame/fixed are
+                                # set); "fixed_axis" adds the simpler model of an offset, tilted axis (full turns)
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
     warmup = 1                  # translation-only rounds before a model with free rotations, at the first scale
     # ... or the whole stage list, one table per stage (then no recipe parameter above):
