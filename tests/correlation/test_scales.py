@@ -36,6 +36,22 @@ def test_shapes_and_geometry(scale, rng):
     np.testing.assert_allclose(gs.pixel_centers(2), blocks, atol=1e-12)
 
 
+@pytest.mark.parametrize("shape, scale, sigma", [((3, 37, 50), 2, None), ((2, 31, 47), 3, None), ((2, 64, 80), 4, None),
+                                                 ((2, 9, 11), 4, 3.0), ((2, 20, 20), 2, 0.3)])
+def test_blur_and_bin_at_the_coarse_pixels_only_is_the_blur_then_the_block_mean(shape, scale, sigma, rng):
+    # the definition (scipy's Gaussian with mirror edges over every fine pixel, then the block mean), against the
+    # one linear map per axis evaluated at the coarse pixels; sigma 3 at 9 rows: the kernel reflects more than once
+    from scipy.ndimage import gaussian_filter
+
+    g = parallel(np.linspace(0, np.pi, shape[0], endpoint=False), det_shape=shape[1:], pixel=1.0)
+    proj = rng.normal(size=shape).astype(np.float32) + 2.0
+    sig = scale / 2 if sigma is None else sigma
+    want = pdvc.projectors.bin_projections(gaussian_filter(proj, sigma=(0, sig, sig), mode="reflect"), scale)
+    got, _ = coarse_grain(proj, g, scale, sigma=sigma)
+    assert got.dtype == np.float32 and got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+
+
 def test_scale_one_is_an_unchanged_copy(rng):
     g = parallel(ANGLES, det_shape=(8, 9), pixel=1.0)
     proj = rng.normal(size=(5, 8, 9))
