@@ -68,6 +68,14 @@ class ResidualDiagnosis:
         return f"residual chi {self.chi:.3g}: " + ", ".join(f"{100 * v:.0f}% {name}" for name, v in parts if v >= 0.005)
 
 
+def _sum_squares(a) -> float:
+    """Σ a² accumulated in float64, a view at a time (no full-size temporary)."""
+    a = np.asarray(a)
+    if a.ndim < 2:
+        return float(np.dot(a.astype(np.float64), a.astype(np.float64)))
+    return float(sum(np.einsum("i,i->", x.reshape(-1), x.reshape(-1), dtype=np.float64) for x in a))
+
+
 def diagnose_residual(residual, noise_variance: float, weights=None) -> ResidualDiagnosis:
     """Split the residual ``(n_views, n_rows, n_cols)`` into the parts of :class:`ResidualDiagnosis`.
 
@@ -80,34 +88,46 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     ``n γ²`` (capped at what is left), the structure the rest. Pixels with
     zero weight are left out.
     """
-    r = np.array(residual, dtype=np.float64)
+    # one float32 copy, changed in place (a scan's residual is the size of its data: no float64 or temporary copies),
+    # sums accumulated in float64
+    r = np.array(residual, dtype=np.float32)
     w = np.ones(r.shape, bool) if weights is None else np.broadcast_to(np.asarray(weights) > 0, r.shape)
-    r[~w] = 0.0
+    off = ~w
+    r[off] = 0.0
     n_w = max(int(w.sum()), 1)
-    total = float(np.sum(r**2))
+    total = _sum_squares(r)
     if not total > 0:
         return ResidualDiagnosis(0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
     cnt_v = np.maximum(w.sum(axis=(1, 2)), 1)
-    m = r.sum(axis=(1, 2)) / cnt_v
+    m = r.sum(axis=(1, 2), dtype=np.float64) / cnt_v
     e_view = float(np.sum(m**2 * cnt_v))
-    r = np.where(w, r - m[:, None, None], 0.0)
+    r -= m[:, None, None].astype(np.float32)
+    r[off] = 0.0
     cnt_c = np.maximum(w.sum(axis=(0, 1)), 1)
-    c = r.sum(axis=(0, 1)) / cnt_c
+    c = r.sum(axis=(0, 1), dtype=np.float64) / cnt_c
     e_col = float(np.sum(c**2 * cnt_c))
-    r = np.where(w, r - c[None, None, :], 0.0)
+    r -= c[None, None, :].astype(np.float32)
+    r[off] = 0.0
     cnt_r = np.maximum(w.sum(axis=(0, 2)), 1)
-    rw = r.sum(axis=(0, 2)) / cnt_r
+    rw = r.sum(axis=(0, 2), dtype=np.float64) / cnt_r
     e_row = float(np.sum(rw**2 * cnt_r))
-    r = np.where(w, r - rw[None, :, None], 0.0)
+    r -= rw[None, :, None].astype(np.float32)
+    r[off] = 0.0
+    del off
     vals = r[w]
-    sigma = 1.4826 * float(np.median(np.abs(vals - np.median(vals)))) if vals.size else 0.0
+    if vals.size:
+        vals -= np.median(vals)
+        sigma = 1.4826 * float(np.median(np.abs(vals, out=vals)))
+    else:
+        sigma = 0.0
+    del vals
     # isolated: no 4-neighbour beyond 3 sigma (the edges of a misplaced sample are lines), or a bright group within
     # 3 x 3 px with nothing beyond 3 sigma around it (a zinger whose light spread)
     out = np.zeros(r.shape, bool)
     if sigma > 0:
         out = w & (isolated_outliers(r, sigma, 6.0, ratio=np.inf)
                    | (outlier_blobs(r, sigma, 6.0, ratio=np.inf, quiet=True)[0] > 0))
-    e_out = float(np.sum(r[out] ** 2))
+    e_out = _sum_squares(r[out])
     rest = max(total - e_view - e_col - e_row - e_out, 0.0)
     e_noise = min(n_w * float(noise_variance), rest)
     shares = np.array([e_view, e_col, e_row, e_out, e_noise, rest - e_noise]) / total
