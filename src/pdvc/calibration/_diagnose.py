@@ -71,9 +71,8 @@ class ResidualDiagnosis:
 def _sum_squares(a) -> float:
     """Σ a² accumulated in float64, a view at a time (no full-size temporary)."""
     a = np.asarray(a)
-    if a.ndim < 2:
-        return float(np.dot(a.astype(np.float64), a.astype(np.float64)))
-    return float(sum(np.einsum("i,i->", x.reshape(-1), x.reshape(-1), dtype=np.float64) for x in a))
+    rows = a.reshape(a.shape[0], -1) if a.ndim >= 2 else a.reshape(1, -1)
+    return float(sum(np.einsum("i,i->", x, x, dtype=np.float64) for x in rows))
 
 
 def diagnose_residual(residual, noise_variance: float, weights=None) -> ResidualDiagnosis:

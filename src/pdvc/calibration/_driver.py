@@ -280,11 +280,6 @@ class _Context:
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
         self.offset_sigma = float("nan")
         self.model_choice: Optional[ModelChoice] = None  # stages with candidates: decided at the first one, then kept
-        # over half a turn the reconstruction takes up smooth motions and the views left out no longer tell a simpler
-        # model from the stage's own (docs/method.md §5.12): simpler candidates are compared on full scans only
-        frac = opposite_fraction(geom)
-        self.short_scan = "" if frac >= SHORT_SCAN_OPPOSITE_FRACTION else \
-            f"a short scan ({100 * frac:.0f} % of the views have an opposite view) cannot tell them apart"
 
     def with_model(self, stage: Stage) -> Stage:
         """The stage with the motion model chosen (stages with ``candidates``, once a choice was made)."""
@@ -299,6 +294,11 @@ class _Context:
         """Compare the stage's model with its candidates on views they were not fitted to (``docs/method.md`` §5.12)."""
         p, g, vg, w, gamma2 = self.at_scale(stage.scale)
         own = model_name(stage)
+        # over half a turn the reconstruction takes up smooth motions and the views left out no longer tell a simpler
+        # model from the stage's own (docs/method.md §5.12): simpler candidates are compared on full scans only
+        frac = opposite_fraction(self.geom)
+        short = "" if frac >= SHORT_SCAN_OPPOSITE_FRACTION else \
+            f"a short scan ({100 * frac:.0f} % of the views have an opposite view) cannot tell them apart"
         # plain least squares (no robust weights): what a model predicts better is in the large residuals at the
         # sample's edges, which Huber weights would lower (a foam's combined motion 0.009 -> 0.043 px, tuning split)
         self.model_choice = compare_models(
@@ -306,7 +306,7 @@ class _Context:
             dict(basis=stage.basis, frame=stage.frame, fixed=stage.fixed), {c: model_fields(c) for c in stage.candidates},
             noise_variance=gamma2, weights=w, angles=self.angles, times=self.times, center=self.center,
             background=stage_background(stage, self.auto_background), backend=self.backend, max_iter=stage.max_iter,
-            own_name=own, skip_simpler=self.short_scan,
+            own_name=own, skip_simpler=short,
         )
         return self.model_choice
 

@@ -144,14 +144,13 @@ class ModelChoice:
         if self.changed:
             return f"{self.winner}: predicts the views it was not fitted to {100 * self.gain:.2g} % better than {self.own} " \
                    f"(cross-validated chi^2: {parts})"
-        simpler = [k for k in self.scores if k in self.sizes and self.sizes[k] < self.sizes.get(self.own, 0)]
-        beats = " and ".join(f"{100 * (1.0 - self.scores[self.own] / self.scores[k]):.2g} % better than {k}" for k in simpler
-                             if self.scores[k] > 0)
+        simpler = [k for k in self.scores if k in self.sizes and self.sizes[k] < self.sizes.get(self.own, 0) and self.scores[k] > 0]
+        if not simpler:
+            return f"{self.own} kept: no candidate predicts the views it was not fitted to more than {100 * self.min_gain:.2g} % " \
+                   f"better (cross-validated chi^2: {parts})"
+        beats = " and ".join(f"{100 * (1.0 - self.scores[self.own] / self.scores[k]):.2g} % better than {k}" for k in simpler)
         return f"{self.own} kept: it predicts the views it was not fitted to {beats} (more than {100 * self.own_gain:.2g} %), " \
-               f"and no richer candidate more than {100 * self.min_gain:.2g} % better than it (cross-validated chi^2: {parts})" \
-            if simpler else \
-               f"{self.own} kept: no candidate predicts the views it was not fitted to more than {100 * self.min_gain:.2g} % " \
-               f"better (cross-validated chi^2: {parts})"
+               f"and no richer candidate more than {100 * self.min_gain:.2g} % better than it (cross-validated chi^2: {parts})"
 
     def to_dict(self) -> dict:
         return dict(winner=self.winner, own=self.own, scores=dict(self.scores), gain=self.gain, n_views=self.n_views,
