@@ -72,7 +72,7 @@ def test_default_recipe_on_nonneg_ls_spends_its_rounds_at_the_coarse_scale_and_r
     assert [s.rounds for s in recipe_stages("default", (134, 160), reconstruct="nonneg_ls", max_outer=10)] == [1, 9, 10, 5]
     assert [s.rounds for s in recipe_stages("default", (134, 160))] == [1, 9, 10, 5]
     assert [s.rounds for s in recipe_stages("default", (76, 89), reconstruct="nonneg_ls")] == [1, 9, 5]
-    assert [s.rounds for s in recipe_stages("precession", (134, 160))] == [1, 7, 8]
+    assert [s.rounds for s in recipe_stages("precession", (134, 160))] == [1, 7, 8, 5]
 
 
 def test_default_recipe_is_a_warmup_then_the_model_at_each_scale_the_warmup_at_the_first_only():
@@ -110,8 +110,11 @@ def test_auto_scales_cap_the_correlation_grid_of_the_finest_scale():
 
 def test_recipes_differ_in_their_model_and_take_overrides():
     assert set(RECIPES) == {"default", "precession", "jolts", "axis"}
-    prec = recipe_stages("precession", (50, 60))[-1]
+    *_, prec, after = recipe_stages("precession", (50, 60))
     assert (prec.basis, prec.frame, prec.reconstruct, prec.guards) == ("drift", "lab", "nonneg_ls", ("consistency", "entropy"))
+    # the jolt stage follows the precession model too (on its volume), unless jolts=False
+    assert (after.name, after.basis, after.reconstruct) == ("jolts", "jolt_steps", "nonneg_ls")
+    assert recipe_stages("precession", (50, 60), jolts=False)[-1] == prec
     jolts = recipe_stages("jolts", (50, 60))
     assert len(jolts) == 1 and jolts[0].basis == "dirac" and jolts[0].rounds == 8  # no free rotation: no warm-up
     mine = recipe_stages("default", (50, 60), max_outer=5, basis="spline:3", oversample=1)

@@ -121,6 +121,16 @@ fixed = ["rz"]
 reconstruct = "nonneg_ls"
 guards = ["consistency", "entropy"]
 rounds = 7
+
+[[calibration.stage]]
+name = "jolts"
+basis = "jolt_steps"
+frame = "lab"
+fixed = ["rx", "ry", "rz", "ty"]
+reconstruct = "nonneg_ls"
+until = "rounds"
+rounds = 5
+stall_ratio = 0
 """
 
 JOLTS = """

@@ -373,6 +373,7 @@ def recipe_stages(
         ``default``: a tilted, offset axis and smooth drift (sample-frame
         ``fourier:1``, FDK). ``precession``: a precessing axis (lab-frame
         ``drift`` basis, non-negative least-squares volume, entropy guard).
+        Both end with the jolt stage unless ``jolts=False``.
         ``jolts``: sudden jumps (free per-view lab translations).
         ``axis``: only a fixed (offset, tilted) axis (constant lab model).
     det_shape : (rows, cols)
@@ -397,8 +398,8 @@ def recipe_stages(
         and frame (so that the model can take back anything the warm-up
         measured).
     jolts : bool
-        ``default`` recipe: end with :func:`jolt_stage` (skipped unless some
-        views' fit stays poor after the smooth model).
+        ``default`` and ``precession`` recipes: end with :func:`jolt_stage`
+        (skipped unless some views' fit stays poor after the smooth model).
     **model
         Overrides of the model stage's fields (``basis``, ``frame``,
         ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
@@ -456,7 +457,7 @@ def recipe_stages(
             stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
         fine = dict(until="rounds") if rounds[j] < n_outer else {}  # a refinement: its rounds, not a convergence
         stages.append(base.replace(scale=s, rounds=rounds[j] - n_warm, **(refine if j > 0 else {}), **fine))
-    if recipe == "default" and jolts:
+    if recipe in ("default", "precession") and jolts:
         stages.append(jolt_stage(stages[-1]))
     return tuple(stages)
 
