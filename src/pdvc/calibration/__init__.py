@@ -13,6 +13,9 @@
   per-view poses.
 * :func:`compare_models` scores motion models (:data:`MODELS`) on views
   they were not fitted to: the default recipe's automatic model choice;
+  :func:`cross_validated_misfit` compares finished calibrations by how well
+  each geometry's reconstruction predicts the views it was not made from
+  (a study tool, not in the pipeline);
 * :func:`epipolar_refine` measures modes of the set-up by the epipolar
   consistency of cone-beam view pairs, a criterion that does not go
   through a reconstruction (a study tool: ``benchmarks/bench_modes.py --ecc``).
@@ -39,7 +42,7 @@ from ._truncation import (
     truncation_weights,
 )
 from ._pipeline import CalibrationError, CalibrationResult, calibrate, per_view_snr, resolve_stages, short_scan_reconstruction
-from ._select import MIN_MODEL_GAIN, MODELS, OWN_MODEL_GAIN, ModelChoice, compare_models
+from ._select import MIN_MODEL_GAIN, MODELS, OWN_MODEL_GAIN, ModelChoice, compare_models, cross_validated_misfit
 from ._stages import (
     GUARDS,
     RECIPES,
@@ -104,6 +107,7 @@ __all__ = [
     "diagnose_residual",
     "ResidualDiagnosis",
     "compare_models",
+    "cross_validated_misfit",
     "ModelChoice",
     "MODELS",
     "MIN_MODEL_GAIN",

@@ -26,11 +26,13 @@ import numpy as np
 from ..correlation import correlate, make_basis
 from ..correlation._engine import _problem
 from ..correlation._frames import lab_to_sample_map, params_to_lab, params_to_sample
-from ..geometry import Poses, sample_points
+from ..errors import InputTypeError, ShapeError
+from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 
 log = logging.getLogger("pdvc.calibration")
 
-__all__ = ["MODELS", "MIN_MODEL_GAIN", "OWN_MODEL_GAIN", "ModelChoice", "compare_models", "pick_model", "model_fields",
+__all__ = ["MODELS", "MIN_MODEL_GAIN", "OWN_MODEL_GAIN", "ModelChoice", "compare_models", "cross_validated_misfit", "pick_model",
+           "model_fields",
            "model_name", "with_model"]
 
 #: Named motion models a stage can list as candidates: (basis, frame, fixed).
@@ -297,3 +299,88 @@ def compare_models(
     log.debug("motion model: each model's predictions moved the sample by %s px (gauge-free RMS, the views left out)",
               {k: round(v, 4) for k, v in shifts.items()})
     return choice
+
+
+def _positive_int(x, name: str, least: int = 1) -> int:
+    if not isinstance(x, (int, np.integer)) or isinstance(x, bool) or x < least:
+        raise InputTypeError(f"{name} must be an int >= {least}, got {x!r}")
+    return int(x)
+
+
+def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *, scale: int = 1, oversample: int = 2,
+                           folds: int = 2, n_iter: int = 30, weights=None, backend: str = "auto") -> np.ndarray:
+    """How well each geometry's reconstruction predicts the views it was not made from (lower is better).
+
+    A comparison of finished calibrations (the geometries two recipes
+    returned, say), not of motion models on one volume as
+    :func:`compare_models` makes: for each geometry, the views are split
+    into ``folds`` interleaved sets (view ``k`` in set ``k % folds``); a
+    non-negative least-squares volume (:func:`pdvc.recon.nonneg_ls`, cubic
+    B-splines on ``vol_geom`` at ``scale``, sampled ``oversample`` times
+    finer) is made from the other sets at that geometry and re-projected
+    onto each set. A motion the reconstruction takes up (a precession once
+    per turn against a volume made without it) then counts too. Measured
+    in ``docs/method.md`` §5.12; not used by :func:`pdvc.calibrate`.
+
+    Parameters
+    ----------
+    projections : (n_views, n_rows, n_cols) array
+        Line integrals; not modified.
+    vol_geom : VolumeGeometry
+        The reconstruction grid at full resolution.
+    geometries : sequence of VectorGeometry
+        The geometries compared, each of the projections' shape.
+    scale : int
+        Compare at this scale (:func:`pdvc.correlation.coarse_grain`).
+    oversample, n_iter
+        Of the volumes (as a calibration stage's).
+    folds : int, >= 2
+        Sets of views.
+    weights : array, optional
+        Detector weights at full resolution (e.g. rays that leave the volume
+        at 0), broadcastable to the projections.
+
+    Returns
+    -------
+    (len(geometries),) float64 array
+        Weighted residual of the predicted views over the weighted energy
+        of the data, summed over the sets.
+    """
+    from ..correlation import coarse_grain, coarse_weights
+    from ..projectors import forward
+    from ..recon import nonneg_ls, refined_grid
+
+    geoms = list(geometries) if not isinstance(geometries, VectorGeometry) else [geometries]
+    if not geoms or not all(isinstance(g, VectorGeometry) for g in geoms):
+        raise InputTypeError("geometries must be a non-empty sequence of pdvc.VectorGeometry")
+    if not isinstance(vol_geom, VolumeGeometry):
+        raise InputTypeError(f"vol_geom must be a pdvc.VolumeGeometry, got {type(vol_geom).__name__}")
+    s = _positive_int(scale, "scale")
+    k = _positive_int(oversample, "oversample")
+    n_sets = _positive_int(folds, "folds", 2)
+    shape = np.shape(projections)
+    for i, g in enumerate(geoms):
+        if shape != (g.n_views,) + tuple(g.det_shape):
+            raise ShapeError(f"geometries[{i}] is for projections of shape {(g.n_views,) + tuple(g.det_shape)}, got {shape}")
+    if shape[0] < 2 * n_sets:
+        raise ShapeError(f"folds={n_sets} needs at least {2 * n_sets} views, got {shape[0]}")
+    p_s = coarse_grain(projections, geoms[0], s)[0]  # the data's coarse-graining does not depend on the geometry
+    w = None if weights is None else coarse_weights(np.broadcast_to(np.asarray(weights, np.float32), shape), s, p_s.shape[1:])
+    vg = vol_geom.binned(s) if s > 1 else vol_geom
+    fine = refined_grid(vg, k)
+    idx = np.arange(shape[0])
+    out = np.empty(len(geoms))
+    for i, g in enumerate(geoms):
+        g_s = g.binned(s) if s > 1 else g
+        rss = energy = 0.0
+        for r in range(n_sets):
+            fit, test = idx[idx % n_sets != r], idx[idx % n_sets == r]
+            vol = nonneg_ls(p_s[fit], fine, g_s[fit], coarsen=k, n_iter=n_iter, weights=None if w is None else w[fit],
+                            backend=backend)
+            d = (forward(vol, fine, g_s[test], backend=backend) - p_s[test]).astype(np.float64)
+            wt = 1.0 if w is None else w[test]
+            rss += float(np.sum(wt * d * d))
+            energy += float(np.sum(wt * p_s[test].astype(np.float64) ** 2))
+        out[i] = rss / max(energy, 1e-300)
+        log.info("cross-validated misfit of geometry %d: %.6g (%d sets of views, scale %d)", i, out[i], n_sets, s)
+    return out
