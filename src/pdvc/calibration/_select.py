@@ -23,17 +23,18 @@ from typing import Optional
 
 import numpy as np
 
-from ..correlation import correlate, make_basis
+from ..correlation import coarse_grain, coarse_weights, correlate, make_basis
 from ..correlation._engine import _problem
 from ..correlation._frames import lab_to_sample_map, params_to_lab, params_to_sample
 from ..errors import InputTypeError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
+from ..projectors import forward
+from ..recon import nonneg_ls, refined_grid
 
 log = logging.getLogger("pdvc.calibration")
 
-__all__ = ["MODELS", "MIN_MODEL_GAIN", "OWN_MODEL_GAIN", "ModelChoice", "compare_models", "cross_validated_misfit", "pick_model",
-           "model_fields",
-           "model_name", "with_model"]
+__all__ = ["MODELS", "MIN_MODEL_GAIN", "OWN_MODEL_GAIN", "ModelChoice", "compare_models", "cross_validated_misfit",
+           "pick_model", "model_fields", "model_name", "with_model"]
 
 #: Named motion models a stage can list as candidates: (basis, frame, fixed).
 MODELS = {
@@ -346,10 +347,6 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
         Weighted residual of the predicted views over the weighted energy
         of the data, summed over the sets.
     """
-    from ..correlation import coarse_grain, coarse_weights
-    from ..projectors import forward
-    from ..recon import nonneg_ls, refined_grid
-
     geoms = list(geometries) if not isinstance(geometries, VectorGeometry) else [geometries]
     if not geoms or not all(isinstance(g, VectorGeometry) for g in geoms):
         raise InputTypeError("geometries must be a non-empty sequence of pdvc.VectorGeometry")
