@@ -85,8 +85,10 @@ def test_candidates_are_a_stage_field_the_default_recipe_sets_unless_the_model_i
 def test_a_kept_axis_model_says_what_the_comparison_cannot_see():
     # a precession once per turn hardly changes the cross-validated scores (docs/method.md §5.12): the text
     # of an axis model kept over the precession model points to the precession recipe, and only that text
+    # (and to the refine stage)
     kept = ModelChoice(winner="axis", own="axis", scores={"axis": 1.0, "precession": 0.998})
     assert kept.text().startswith("axis kept: no candidate") and 'recipe = "precession"' in kept.text()
+    assert "refine = true" in kept.text()
     won = ModelChoice(winner="precession", own="axis", scores={"axis": 1.0, "precession": 0.9}, gain=0.1)
     simpler = ModelChoice(winner="fixed_axis", own="axis", scores={"fixed_axis": 1.0, "axis": 0.999}, simpler=True,
                           sizes={"fixed_axis": 5, "axis": 20})

@@ -22,9 +22,12 @@ from pdvc.calibration import (
     StageError,
     auto_scales,
     recipe_stages,
+    refine_stage,
+    run_stages,
     stages_from_dicts,
     stages_to_dicts,
 )
+from pdvc.calibration._stages import REFINE_ROUNDS
 from pdvc.io import ConfigError, load_config, write_config
 
 
@@ -94,6 +97,40 @@ def test_default_recipe_is_a_warmup_then_the_model_at_each_scale_the_warmup_at_t
     assert len(recipe_stages("default", (76, 89), jolts=False)) == 2
 
 
+def test_the_refinement_is_an_option_of_the_default_recipe_with_its_own_model_and_volume():
+    # refine = True: the precession model on nonneg_ls volumes at the coarsest scale, after the smooth model, at
+    # most its rounds, stopping when they stop contracting; the jolts are still looked for at the finest scale on
+    # the smooth model's own (FDK) volumes
+    big = recipe_stages("default", (1024, 1024), refine=True)
+    assert [(s.name, s.scale, s.rounds) for s in big] == [
+        ("warmup", 4, 1), ("model", 4, 9), ("model", 2, 10), ("refine", 4, REFINE_ROUNDS), ("jolts", 2, 5)]
+    refine, jolts = big[-2:]
+    assert refine == refine_stage(big[1], scale=4)
+    assert (refine.basis, refine.frame, refine.fixed, refine.reconstruct) == ("drift", "lab", ("rz",), "nonneg_ls")
+    assert refine.until == "rounds" and refine.stall_ratio == 1.0 and refine.guards == ("consistency", "entropy")
+    assert refine.candidates == () and refine.diverge_tol == Stage().diverge_tol
+    assert jolts == recipe_stages("default", (1024, 1024))[-1] and jolts.reconstruct == "fdk"
+    # off by default; never when the user chose the model or the volume (a short scan's nonneg_ls included), nor
+    # in the other recipes
+    names = lambda **kw: [s.name for s in recipe_stages(kw.pop("recipe", "default"), (76, 89), **kw)]  # noqa: E731
+    assert "refine" in names(refine=True) and "refine" not in names()
+    for kw in (dict(basis="fourier:2"), dict(reconstruct="nonneg_ls"), dict(reconstruct="fdk"), dict(recipe="precession")):
+        assert "refine" not in names(refine=True, **kw)
+
+
+def test_a_rounds_stage_stops_when_its_rounds_stop_contracting(small):
+    # stall_ratio holds for either `until` (the refinement's rounds): the poses before the round that did not
+    # contract are kept, and the stage's status says so
+    p, g, vg = small.scan.projections, small.scan.geometry, small.vol_geom
+    st = Stage(name="m", basis="constant", frame="lab", fixed=("rz", "ty"), until="rounds", rounds=6, tol_px=1e-9,
+               stall_ratio=1e-9)  # any second round "does not contract"
+    out = run_stages(p, g, vg, [st], noise_variance=1e-4)
+    assert out.stages[0].status == Status.STOPPED_CONTRACTING and len(out.history) == 2
+    # without the rule it runs its rounds
+    free = run_stages(p, g, vg, [st.replace(stall_ratio=None, rounds=3)], noise_variance=1e-4)
+    assert free.stages[0].status == Status.ROUNDS_DONE and len(free.history) == 3
+
+
 def test_auto_scales_cap_the_correlation_grid_of_the_finest_scale():
     # the standard problem: scale 1 would correlate on 512^3; an octave coarser it is 256^3 and scale 4 keeps 96 px
     assert auto_scales((256, 384)) == (2, 1)
@@ -148,6 +185,16 @@ def test_config_selects_a_recipe_and_spells_out_stages(tmp_path):
         load_config(_raw(stage=[{"name": "m", "frame": "world"}]), base_dir=tmp_path)
     with pytest.raises(ConfigError, match=r"calibration\.recipe must be one of"):
         load_config(_raw(recipe="wobble"), base_dir=tmp_path)
+    # the default recipe's refinement: off unless refine = true, which goes to recipe_stages
+    assert load_config(_raw(), base_dir=tmp_path).calibration.recipe_parameters() == {}
+    on = load_config(_raw(refine=True), base_dir=tmp_path)
+    assert on.calibration.recipe_parameters() == {"refine": True}
+    assert "refine" in [s.name for s in recipe_stages("default", (76, 89), **on.calibration.recipe_parameters())]
+    assert load_config(write_config(tmp_path / "r.toml", on)) == on
+    with pytest.raises(ConfigError, match=r"calibration\.refine must be"):
+        load_config(_raw(refine="yes"), base_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"calibration\.refine cannot be combined"):
+        load_config(_raw(refine=True, stage=stages_to_dicts(stages)), base_dir=tmp_path)
 
 
 def test_background_is_a_stage_field_a_recipe_parameter_and_a_config_key(tmp_path):

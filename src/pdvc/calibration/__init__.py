@@ -56,6 +56,7 @@ from ._stages import (
     stages_to_dicts,
     warmup_stage,
     jolt_stage,
+    refine_stage,
 )
 
 __all__ = [
@@ -75,6 +76,7 @@ __all__ = [
     "run_stages",
     "jolt_views",
     "jolt_stage",
+    "refine_stage",
     "DriverResult",
     "StageOutcome",
     "refined_grid",

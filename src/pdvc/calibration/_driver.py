@@ -554,7 +554,7 @@ class _StageRun:
             if inc < st.tol_px:
                 status = Status.CONVERGED if st.until == "converged" else Status.ROUNDS_DONE
                 break
-            if st.until == "converged" and st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc:
+            if st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc:
                 log.info("round %d: increment %.3g px did not contract (previous %.3g px); stopping", r, inc, prev_inc)
                 status = Status.STOPPED_CONTRACTING
                 # the poses before this round; a jump's round goes back to where the jump started

@@ -273,6 +273,9 @@ def calibrate(
         short scan (parallel over half a turn, cone beam over 180° plus
         the fan angle) without ``reconstruct`` (nor ``stages``)
         reconstructs by ``nonneg_ls`` (:func:`short_scan_reconstruction`).
+        The recipe's switches go there too: ``jolts=False`` leaves out the
+        jolt stage, ``refine=True`` adds the default recipe's refinement
+        (:func:`pdvc.calibration.refine_stage`, ``docs/method.md`` §5.22).
     init : {"auto", "axis", "none"}
         Coarse initialisation: the axis offset from opposite views by
         cross-correlation (needs views ~180° apart). "auto" uses it when

@@ -142,7 +142,8 @@ class ModelChoice:
             return ""
         # measured on 92^3 tuning scans: gains of 0.0-2 % where the precession model lowers the error 5-20x
         return ("; a precession once per turn hardly changes this comparison (the reconstruction takes it up): for a "
-                "stage that wobbles, run recipe = \"precession\" (docs/method.md §5.12)")
+                "stage that wobbles, set refine = true (the precession model on non-negative least-squares volumes after "
+                "this one) or run recipe = \"precession\" (docs/method.md §5.22)")
 
     def _verdict(self) -> str:
         parts = ", ".join(f"{k} {v:.4g}" for k, v in self.scores.items())

@@ -34,6 +34,7 @@ __all__ = [
     "GUARDS",
     "recipe_stages",
     "jolt_stage",
+    "refine_stage",
     "JOLT_BASIS",
     "auto_scales",
     "stages_to_dicts",
@@ -109,8 +110,9 @@ class Stage:
         ``"rounds"``: the stage runs its rounds (a warm-up), ending early on
         ``tol_px``.
     stall_ratio : float or None
-        ``until="converged"``: stop when an increment is at least this times
-        the previous one. None: no such rule.
+        Stop when an increment is at least this times the previous one,
+        keeping the poses before that round (either ``until``). None: no
+        such rule.
     guards : tuple of str
         ``"consistency"``: stop when the data consistency of a fresh
         reconstruction rises by more than ``diverge_tol`` over the best of the
@@ -360,10 +362,14 @@ _RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
 NONNEG_COARSE_ROUNDS = 2
 NONNEG_FINE_ROUNDS = 1
 
+# the default recipe's refinement (docs/method.md §5.22): rounds of the precession model on non-negative
+# least-squares volumes at the coarsest scale, from the poses the model stages kept
+REFINE_ROUNDS = 4
+
 
 def recipe_stages(
     recipe: str = "default", det_shape=None, *, vol_shape=None, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
-    warmup_basis: str = "drift", jolts: bool = True, **model,
+    warmup_basis: str = "drift", jolts: bool = True, refine: bool = False, **model,
 ) -> tuple:
     """The stage list of a named recipe.
 
@@ -400,6 +406,14 @@ def recipe_stages(
     jolts : bool
         ``default`` and ``precession`` recipes: end with :func:`jolt_stage`
         (skipped unless some views' fit stays poor after the smooth model).
+    refine : bool
+        ``default`` recipe with its model chosen from the data (no
+        ``basis``, ``frame`` or ``fixed`` given) and its own volume (no
+        ``reconstruct`` given; a short scan's ``nonneg_ls`` counts as
+        given): end the smooth model with :func:`refine_stage` at the
+        coarsest scale, before the jolts (``docs/method.md`` §5.22). Off by
+        default: better on the benchmark's scans, worse on a plain tilted
+        axis.
     **model
         Overrides of the model stage's fields (``basis``, ``frame``,
         ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
@@ -442,7 +456,7 @@ def recipe_stages(
                      "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), plain, edge)
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
-    refine = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
+    finer = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
     # the rounds of each scale: a non-negative least-squares loop creeps along its near-gauge modes by
     # increments that shrink 10-40 % a round, cheaply at a coarse scale; the finest scale refines
     rounds = [n_outer] * len(sched)
@@ -456,10 +470,32 @@ def recipe_stages(
         if n_warm:
             stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
         fine = dict(until="rounds") if rounds[j] < n_outer else {}  # a refinement: its rounds, not a convergence
-        stages.append(base.replace(scale=s, rounds=rounds[j] - n_warm, **(refine if j > 0 else {}), **fine))
+        stages.append(base.replace(scale=s, rounds=rounds[j] - n_warm, **(finer if j > 0 else {}), **fine))
+    last = stages[-1]  # the jolts are looked for at the finest scale, on the smooth model's own volumes
+    if recipe == "default" and refine and spec.get("candidates") and model.get("reconstruct") is None:
+        stages.append(refine_stage(base, scale=sched[0]))
     if recipe in ("default", "precession") and jolts:
-        stages.append(jolt_stage(stages[-1]))
+        stages.append(jolt_stage(last))
     return tuple(stages)
+
+
+def refine_stage(model: Stage, *, scale: int, rounds: int = REFINE_ROUNDS) -> Stage:
+    """After the default's smooth model: the precession model on non-negative least-squares volumes.
+
+    A precession once per turn is taken up by the FDK volume the default's
+    model is fitted to, and the model choice does not see it; the
+    consistent volume gives it back. On a plain tilted axis its rounds can
+    walk along the weak modes, which is why it is an option
+    (``docs/method.md`` §5.22). Lab-frame ``drift``
+    basis on the translations and the tilts, ``nonneg_ls`` volume, the
+    consistency and entropy guards; it runs at most ``rounds`` rounds at
+    ``scale`` and stops when a round does not contract (the poses before
+    it kept). A refinement: its status does not replace the model's.
+    """
+    return model.replace(
+        name="refine", **_RECIPE_MODEL["precession"], scale=scale, rounds=rounds, until="rounds", stall_ratio=1.0,
+        candidates=(), diverge_tol=Stage.diverge_tol,
+    )
 
 
 def jolt_stage(model: Stage, rounds: int = 5) -> Stage:

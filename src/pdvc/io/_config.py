@@ -121,6 +121,9 @@ that type needs) are required; everything else has the default shown.
                                 # set); "fixed_axis" adds the simpler model of an offset, tilted axis (full turns)
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
     warmup = 1                  # translation-only rounds before a model with free rotations, at the first scale
+    # refine = false            # true: the default recipe (its model chosen from the data, its own volume) ends with
+                                #   up to 4 rounds of the precession model on nonneg_ls volumes at the coarsest scale
+                                #   (docs/method.md 5.22; better on the benchmark, worse on a plain tilted axis)
     # ... or the whole stage list, one table per stage (then no recipe parameter above):
     # [[calibration.stage]]
     # name = "warmup"           # every field of pdvc.calibration.Stage: name, basis, frame, fixed, method,
@@ -384,6 +387,7 @@ class CalibrationConfig:
     scales: Union[str, tuple[int, ...]] = "auto"
     max_outer: Optional[int] = None
     warmup: int = 1
+    refine: bool = False
     tol_px: Optional[float] = None
     max_iter: Optional[int] = None
     accelerate: Optional[bool] = None
@@ -416,6 +420,8 @@ class CalibrationConfig:
             out["scales"] = tuple(self.scales)
         if self.warmup != 1:
             out["warmup"] = self.warmup
+        if self.refine:
+            out["refine"] = True
         return out
 
 
@@ -881,10 +887,12 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
     if scales != "auto" and any(b >= a for a, b in zip(scales, scales[1:])):
         raise ConfigError(f"calibration.scales must be strictly decreasing (coarse to fine), got {list(scales)}")
     warmup = _integer(t.pop("warmup", d.warmup), w + "warmup", minimum=0)
+    refine = _boolean(t.pop("refine", d.refine), w + "refine")
     recipe = _choice(t.pop("recipe", d.recipe), w + "recipe", RECIPES)
     stage = t.pop("stage")
     if stage is not None:
-        given = sorted(kw) + (["scales"] if scales != "auto" else []) + (["warmup"] if warmup != d.warmup else [])
+        given = sorted(kw) + (["scales"] if scales != "auto" else []) + (["warmup"] if warmup != d.warmup else []) + (
+            ["refine"] if refine != d.refine else [])
         if given:
             raise ConfigError(
                 f"calibration.{given[0]} cannot be combined with [[calibration.stage]] tables: "
@@ -900,6 +908,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         stage=stage,
         scales=scales,
         warmup=warmup,
+        refine=refine,
         center=None if center is None else _triple(center, w + "center"),
         fix_scale=_boolean(t.pop("fix_scale", d.fix_scale), w + "fix_scale"),
         backend=_string(t.pop("backend", d.backend), w + "backend"),
