@@ -494,7 +494,7 @@ def refine_stage(model: Stage, *, scale: int, rounds: int = REFINE_ROUNDS) -> St
     """
     return model.replace(
         name="refine", **_RECIPE_MODEL["precession"], scale=scale, rounds=rounds, until="rounds", stall_ratio=1.0,
-        candidates=(), diverge_tol=Stage.diverge_tol,
+        candidates=(),
     )
 
 

@@ -891,8 +891,8 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
     recipe = _choice(t.pop("recipe", d.recipe), w + "recipe", RECIPES)
     stage = t.pop("stage")
     if stage is not None:
-        given = sorted(kw) + (["scales"] if scales != "auto" else []) + (["warmup"] if warmup != d.warmup else []) + (
-            ["refine"] if refine != d.refine else [])
+        given = sorted(kw) + [k for k, changed in (("scales", scales != "auto"), ("warmup", warmup != d.warmup),
+                                                   ("refine", refine != d.refine)) if changed]
         if given:
             raise ConfigError(
                 f"calibration.{given[0]} cannot be combined with [[calibration.stage]] tables: "
