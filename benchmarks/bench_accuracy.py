@@ -47,7 +47,12 @@ for the nominal geometry, pdvc's and the baseline's. Also pdvc's SNR gain
 (mean over views of ``snr_after - snr_before``, dB), entropy change (bits,
 negative = sharper), wall time, status, success, and whether the result is
 WORSE than nominal (error above the nominal error, or SNR lower): it must
-never be.
+never be. After the table, issue #10's targets with their figures and
+whether this suite meets them (``targets``): smooth motions median <= 0.05
+px and p90 <= 0.1 px, jolts median <= 0.15 px, no case worse than nominal,
+and at least 3x below the best offset + tilt geometry on every case whose
+motion is more than an offset and a tilt (precessions, drifts, jolts,
+combinations).
 
     python benchmarks/bench_accuracy.py --tiny                  # 3 cases, n=24, 48 views (under a minute)
     python benchmarks/bench_accuracy.py --quick                 # 12 held-out cases, n=40, <=180 views (~10 min, 2 cores)
@@ -557,6 +562,45 @@ def table(rows: list) -> list:
     return out
 
 
+# issue #10's targets: smooth motions median <= 0.05 px and p90 <= 0.1 px, jolts median <= 0.15 px, no case worse
+# than nominal, and at least 3x below the best offset + tilt geometry wherever the motion is more than that
+SMOOTH_MOTIONS = ("offset", "tilt_det", "tilt_beam", "prec1", "prec2", "drift", "combo")
+BEYOND_OFFSET_TILT = ("prec1", "prec2", "drift", "jolts", "combo")
+TARGETS = dict(smooth_median=0.05, smooth_p90=0.1, jolts_median=0.15, gain_over_best=3.0)
+
+
+def targets(rows: list) -> list:
+    """Issue #10's targets on these rows, each with its figure and whether it is met."""
+    import numpy as np
+
+    def verdict(ok):
+        return "met" if ok else "NOT met"
+
+    out = ["issue #10 targets on this suite:"]
+    smooth = np.array([r["err_pdvc"] for r in rows if r["motion"] in SMOOTH_MOTIONS], float)
+    if smooth.size:
+        med, p90 = float(np.median(smooth)), float(np.percentile(smooth, 90))
+        out.append(f"  smooth motions ({smooth.size} cases): median {med:.3f} px (<= {TARGETS['smooth_median']}: "
+                   f"{verdict(med <= TARGETS['smooth_median'])}), p90 {p90:.3f} px (<= {TARGETS['smooth_p90']}: "
+                   f"{verdict(p90 <= TARGETS['smooth_p90'])})")
+    jolts = np.array([r["err_pdvc"] for r in rows if r["motion"] == "jolts"], float)
+    if jolts.size:
+        med = float(np.median(jolts))
+        out.append(f"  jolts ({jolts.size} cases): median {med:.3f} px (<= {TARGETS['jolts_median']}: "
+                   f"{verdict(med <= TARGETS['jolts_median'])})")
+    worse = [r["seed"] for r in rows if r["worse"]]
+    out.append(f"  worse than nominal: {len(worse)} of {len(rows)} cases{' (seeds ' + str(worse) + ')' if worse else ''}: "
+               f"{verdict(not worse)}")
+    beyond = [r for r in rows if r["motion"] in BEYOND_OFFSET_TILT]
+    if beyond:
+        gain = [(r["err_best_offset_tilt"] / max(r["err_pdvc"], 1e-12), r["seed"]) for r in beyond]
+        n_ok = sum(g >= TARGETS["gain_over_best"] for g, _ in gain)
+        low = min(gain)
+        out.append(f"  {TARGETS['gain_over_best']:g}x below the best offset + tilt where the motion is more than that: "
+                   f"{n_ok} of {len(gain)} cases (lowest {low[0]:.1f}x, seed {low[1]}): {verdict(n_ok == len(gain))}")
+    return out
+
+
 def _toml_value(text: str):
     try:
         import tomllib
@@ -645,6 +689,9 @@ def main(argv=None) -> int:
         print(case_line(r), flush=True)
     print()
     for line in table(rows):
+        print(line)
+    print()
+    for line in targets(rows):
         print(line)
     n_worse = sum(bool(r["worse"]) for r in rows)
     print(f"\n{len(rows)} cases in {time.perf_counter() - t_all:.0f} s; worse than nominal: {n_worse}; "

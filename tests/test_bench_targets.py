@@ -1,0 +1,29 @@
+"""bench_accuracy.py states issue #10's targets from its rows: each verdict follows its figure."""
+
+from __future__ import annotations
+
+from .conftest import benchmark_module
+
+
+def _row(seed, motion, err, best=0.1, worse=False):
+    return dict(seed=seed, motion=motion, err_pdvc=err, err_best_offset_tilt=best, worse=worse)
+
+
+def test_the_targets_follow_the_rows():
+    with benchmark_module("bench_accuracy") as bench:
+        good = [_row(0, "offset", 0.01, best=0.001), _row(1, "prec1", 0.02, best=0.09), _row(2, "jolts", 0.1, best=0.4),
+                _row(3, "combo", 0.03, best=0.15)]
+        text = "\n".join(bench.targets(good))
+        assert "NOT met" not in text
+        assert "smooth motions (3 cases): median 0.020 px" in text and "jolts (1 cases): median 0.100 px" in text
+        assert "3 of 3 cases (lowest 4.0x, seed 2)" in text  # the offset is not a motion beyond offset + tilt
+        # one precession only 2x below the best offset + tilt, one case worse than nominal, jolts above 0.15 px
+        bad = good[:1] + [_row(1, "prec1", 0.045, best=0.09), _row(2, "jolts", 0.2, best=0.4, worse=True), good[3]]
+        lines = bench.targets(bad)
+        assert sum("NOT met" in line for line in lines) == 3
+        assert any("lowest 2.0x, seed 1" in line and "NOT met" in line for line in lines)
+        assert any("worse than nominal: 1 of 4 cases (seeds [2])" in line for line in lines)
+        # a smooth p90 above 0.1 px fails on its own
+        wide = [_row(i, "drift", e) for i, e in enumerate([0.01] * 8 + [0.3, 0.3])]
+        smooth = [line for line in bench.targets(wide) if "smooth motions" in line][0]
+        assert "median 0.010 px (<= 0.05: met)" in smooth and "(<= 0.1: NOT met)" in smooth
