@@ -398,17 +398,19 @@ def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log
 
 
 def test_nonneg_ls_correlation_volume_by_spline_is_the_upsampled_stage_fit():
-    """oversample_by="spline" with nonneg_ls (the precession model): the fit on the stage's grid, weighted, then the
-    cubic B-spline onto the finer grid."""
+    """oversample_by="spline" with nonneg_ls (the precession model): the fit on the stage's grid, weighted, by ordered
+    subsets of at least 30 views (3 of a 90-view scan; 2 of the 64 here), then the cubic B-spline onto the finer grid."""
     from pdvc.calibration import correlation_volume
+    from pdvc.calibration._driver import nonneg_subsets
     from pdvc.recon import nonneg_ls, spline_upsample
     from tests.correlation.cases import make_case
 
-    c = make_case("offset", n=24, n_views=48)
+    c = make_case("offset", n=24, n_views=64)
     p, g, vg = c.scan.projections, c.scan.geometry, c.vol_geom
     w = np.ones(g.det_shape, np.float32)
     w[:4] = 0.0
     st = Stage(reconstruct="nonneg_ls", oversample=2, oversample_by="spline")
-    np.testing.assert_allclose(correlation_volume(p, vg, g, st, weights=w), spline_upsample(nonneg_ls(p, vg, g, weights=w), 2),
-                               rtol=1e-6, atol=1e-6)
+    assert [nonneg_subsets(n) for n in (29, 64, 90, 91, 180, 1440)] == [1, 2, 3, 3, 3, 3]
+    np.testing.assert_allclose(correlation_volume(p, vg, g, st, weights=w),
+                               spline_upsample(nonneg_ls(p, vg, g, weights=w, subsets=2), 2), rtol=1e-6, atol=1e-6)
     assert not np.allclose(correlation_volume(p, vg, g, st), correlation_volume(p, vg, g, st, weights=w))

@@ -121,6 +121,10 @@ def test_nonneg_ls_clips_what_least_squares_would_make_negative(blob_scan):
         (dict(lipschitz=-1.0), PdvcError, "lipschitz"),
         (dict(lipschitz=float("nan")), PdvcError, "lipschitz"),
         (dict(lipschitz="1"), PdvcError, "lipschitz"),
+        (dict(subsets=0), PdvcError, "subsets"),
+        (dict(subsets=41), PdvcError, "subsets"),
+        (dict(subsets=2.0), PdvcError, "subsets"),
+        (dict(subsets=True), PdvcError, "subsets"),
     ],
 )
 def test_nonneg_ls_rejects_bad_options(blob_scan, kw, err, match):
@@ -249,3 +253,36 @@ def test_the_preconditioned_fit_converges_faster_to_the_same_volume(blob_scan):
 
     shape, vg_c, _, A, AT = _spline_operator(vg, geom, 1, "auto")
     assert abs(_power_iteration(shape, A, AT, _ramp_preconditioner(shape, vg_c.voxel_size), n_iter=30) / lip - 1) < 0.05
+
+
+def test_ordered_subsets_reach_the_plain_iterations_volume_at_a_fraction_of_the_projections():
+    """Interleaved subsets of the views (each subset's gradient scaled by their number) follow the
+    plain iteration of an early-stopped fit: 30 iterations on 5 subsets of 18 views (the mean of the
+    last five iterates returned) give the volume of 30 plain iterations within 0.5 % and the same
+    residual within 0.5 % (measured 0.34 % and 0.10 %), while 30 plain iterations on one subset alone
+    are 7x farther (2.5 %: a fifth of the data). With per-view weights each subset takes its own views'
+    weights (0.4 % from the clean fit, 4.4 % without them); ``subsets=1`` is the plain iteration."""
+    vg = pdvc.VolumeGeometry((16, 20, 20))
+    vol = (gaussian_blob_volume(vg, np.array([1.5, -2.0, 0.5]), 3.0, 1.0)
+           + gaussian_blob_volume(vg, np.array([-3.0, 2.5, -1.0]), 1.5, 0.7)).astype(np.float32)
+    angles = np.linspace(0, np.pi, 90, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(16, 26), pixel=1.0)
+    p = pdvc.forward(vol, vg, geom)
+    p = p + np.random.default_rng(0).normal(0.0, 0.02 * float(p.max()), p.shape).astype(np.float32)
+    kw = dict(coarsen=2, n_iter=30)
+    plain = nonneg_ls(p, vg, geom, **kw)
+    os5 = nonneg_ls(p, vg, geom, subsets=5, **kw)
+    rel = lambda a, b: float(np.linalg.norm(a - b) / np.linalg.norm(b))  # noqa: E731
+    res = lambda x: float(np.linalg.norm(pdvc.forward(x, vg, geom) - p))  # noqa: E731
+    assert rel(os5, plain) < 0.005
+    assert abs(res(os5) / res(plain) - 1) < 0.005
+    one = nonneg_ls(p[0::5], vg, geom[np.arange(0, 90, 5)], **kw)
+    assert rel(one, plain) > 5 * rel(os5, plain)
+    np.testing.assert_array_equal(nonneg_ls(p, vg, geom, subsets=1, **kw), plain)
+    w = np.ones(p.shape, np.float32)
+    w[1::5, :4] = 0.0  # the top rows of one subset's views only
+    dirty = p.copy()
+    dirty[1::5, :4] += 1.0
+    weighted = nonneg_ls(dirty, vg, geom, weights=w, subsets=5, **kw)
+    unweighted = nonneg_ls(dirty, vg, geom, subsets=5, **kw)
+    assert rel(weighted, plain) < 0.5 * rel(unweighted, plain)

@@ -202,6 +202,7 @@ def nonneg_ls(
     weights=None,
     lipschitz: Optional[float] = None,
     precondition: bool = False,
+    subsets: int = 1,
     backend: str = "auto",
     callback: Optional[Callable[[int, float], None]] = None,
 ) -> np.ndarray:
@@ -233,6 +234,20 @@ def nonneg_ls(
     of ``bench_calibrate.py`` 10 iterations fit the data as closely as 30
     without it; ``docs/method.md`` §5.20). ``L`` is then that of the
     filtered operator.
+
+    With ``subsets`` = m > 1 (ordered subsets: Hudson & Larkin 1994; with
+    momentum, Kim, Ramani & Fessler 2015) each iteration uses the views
+    ``j, j + m, j + 2m, …`` of one subset only, j cycling, its gradient
+    scaled by m: one forward and one back-projection of a m-th of the views.
+    An early-stopped fit gets its coarse structure from the first iterations,
+    which every interleaved subset sees as the whole scan does: on the 180°
+    stand-in of ``bench_calibrate.py`` (91 parallel views, 30 iterations from
+    FBP, the 2× grid of scale 1) the last iterate of 3 subsets is within
+    0.01 % of the plain iteration's volume, in 42 % of the time. Each
+    subset's iterate leans towards its own views, so the mean of the last m
+    iterates (one per subset) is returned: within 0.11 % of the plain
+    volume there, residual norm 20.50 against 20.42 (``docs/method.md``
+    §5.24). ``n_iter`` counts the subset iterations.
 
     Parameters
     ----------
@@ -266,9 +281,13 @@ def nonneg_ls(
         Filter the gradient by the ramp of the planes normal to ``z`` (see
         above); ``lipschitz`` must then come from
         ``nonneg_ls_lipschitz(..., precondition=True)``.
+    subsets : int
+        Ordered subsets of the views, interleaved (1: every view at every
+        iteration). At most ``n_views``.
     callback : callable, optional
         ``callback(iteration, residual_norm)`` after each iteration
-        (residual at the extrapolated point).
+        (residual at the extrapolated point; with ``subsets`` the subset's,
+        times √m: an estimate of the whole residual's).
 
     Returns
     -------
@@ -290,8 +309,19 @@ def nonneg_ls(
     if lipschitz is not None and not (isinstance(lipschitz, (int, float, np.floating)) and lipschitz >= 0
                                       and np.isfinite(lipschitz)):
         raise PdvcError(f"lipschitz must be a finite float >= 0 (or None), got {lipschitz!r}")
-    shape, vg_c, up, A, AT = _spline_operator(vol_geom, geom, f, backend)
+    if not (isinstance(subsets, (int, np.integer)) and not isinstance(subsets, bool) and 1 <= subsets <= geom.n_views):
+        raise PdvcError(f"subsets must be an int from 1 to the number of views ({geom.n_views}), got {subsets!r}")
+    shape, vg_c, up, up_t = _spline_maps(vol_geom, f)
+    A, AT = _spline_pair(vol_geom, geom, up, up_t, backend)
     M = _ramp_preconditioner(shape, vg_c.voxel_size) if precondition else None
+    m = int(subsets)
+    parts = [(A, AT, b, w)]
+    if m > 1:  # interleaved subsets of the views, each with its projector pair on the same spline
+        parts = []
+        for j in range(m):
+            views = np.arange(j, geom.n_views, m)
+            parts.append((*_spline_pair(vol_geom, geom[views], up, up_t, backend), b[views],
+                          None if w is None else (w[views] if w.ndim == 3 else w)))
 
     x0 = analytic(b, vg_c, geom)  # only the start: a short arc costs it its Parker weights, not the fit
     if support is True:
@@ -316,21 +346,31 @@ def nonneg_ls(
     step = np.float32(1.0 / (STEP_MARGIN * lip))
     y = x.copy()
     tk = 1.0
-    for it in range(int(n_iter)):
-        r = A(y) - b
-        if w is not None:  # weights <= 1: the unweighted Lipschitz bound still holds
-            r *= w
-        g = AT(r)
+    n = int(n_iter)
+    avg_from = n - min(m, n) if m > 1 else n  # ordered subsets: the mean of the last cycle's iterates is returned
+    acc = None
+    for it in range(n):
+        Aj, ATj, bj, wj = parts[it % m]
+        r = Aj(y) - bj
+        if wj is not None:  # weights <= 1: the unweighted Lipschitz bound still holds
+            r *= wj
+        g = ATj(r)
+        if m > 1:
+            g *= np.float32(m)
         x_new = project(y - step * (g if M is None else M(g)))
         if float(np.vdot(y - x_new, x_new - x)) > 0:  # momentum uphill: restart
             tk = 1.0
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
         y = (x_new + np.float32((tk - 1.0) / t_new) * (x_new - x)).astype(np.float32)
         x, tk = x_new, t_new
-        rn = float(np.linalg.norm(r))
+        if it >= avg_from:
+            acc = x.copy() if acc is None else acc + x
+        rn = float(np.linalg.norm(r) * np.sqrt(m))
         logger.debug("nonneg_ls %d: |r| = %.6g", it + 1, rn)
         if callback is not None:
             callback(it + 1, rn)
+    if acc is not None:  # each subset's iterate leans towards its own views; their mean towards none
+        x = acc / np.float32(n - avg_from)
     return up(x)
 
 
@@ -345,6 +385,13 @@ def _coarsen_factor(coarsen, vol_geom: VolumeGeometry) -> int:
 
 def _spline_operator(vol_geom: VolumeGeometry, geom: VectorGeometry, f: int, backend: str):
     """(coarse shape, coarse grid, U, Π U, Uᵀ Πᵀ) of :func:`nonneg_ls` with B-spline unknowns ``f`` times coarser."""
+    shape, vg_c, up, up_t = _spline_maps(vol_geom, f)
+    A, AT = _spline_pair(vol_geom, geom, up, up_t, backend)
+    return shape, vg_c, up, A, AT
+
+
+def _spline_maps(vol_geom: VolumeGeometry, f: int):
+    """(coarse shape, coarse grid, U, Uᵀ): the cubic B-spline on a grid ``f`` times coarser, sampled on ``vol_geom``."""
     shape = tuple(n // f for n in vol_geom.shape)
     vg_c = VolumeGeometry(shape, voxel_size=tuple(s * f for s in vol_geom.voxel_size), offset=vol_geom.offset)
     mats = [spline_upsampling_matrix(n, f) for n in shape]
@@ -361,13 +408,19 @@ def _spline_operator(vol_geom: VolumeGeometry, geom: VectorGeometry, f: int, bac
             x = _along(band, x, ax)
         return x
 
+    return shape, vg_c, up, up_t
+
+
+def _spline_pair(vol_geom: VolumeGeometry, geom: VectorGeometry, up, up_t, backend: str):
+    """(Π U, Uᵀ Πᵀ) on ``geom`` for the spline maps of :func:`_spline_maps`."""
+
     def A(c):
         return forward(up(c), vol_geom, geom, backend=backend)
 
     def AT(r):
         return up_t(backproject(r, vol_geom, geom, backend=backend))
 
-    return shape, vg_c, up, A, AT
+    return A, AT
 
 
 def _ramp_preconditioner(shape, voxel_size) -> Callable[[np.ndarray], np.ndarray]:
