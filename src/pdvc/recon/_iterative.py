@@ -364,7 +364,10 @@ def nonneg_ls(
         y = (x_new + np.float32((tk - 1.0) / t_new) * (x_new - x)).astype(np.float32)
         x, tk = x_new, t_new
         if it >= avg_from:
-            acc = x.copy() if acc is None else acc + x
+            if acc is None:
+                acc = x.copy()
+            else:
+                acc += x
         rn = float(np.linalg.norm(r) * np.sqrt(m))
         logger.debug("nonneg_ls %d: |r| = %.6g", it + 1, rn)
         if callback is not None:
