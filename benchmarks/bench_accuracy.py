@@ -72,6 +72,7 @@ import datetime
 import logging
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -460,6 +461,14 @@ def run_case(c: Case) -> dict:
     rings = str(res.options.get("rings", ""))
     row["rings"] = ("removed, calibrated again" if "calibrated again" in rings else "removed"
                     if rings.startswith("a fixed pattern") else "not removed")
+    row["model"] = str(res.options.get("model", "")).split(":")[0].split(" ")[0]
+    # second_run: which recipe's geometry came back, and by how much the precession recipe's predicted the views
+    # left out better (+) or worse (-)
+    second = str(res.options.get("second_run", ""))
+    how = re.search(r"reconstruction ([0-9.e+-]+) % (better|worse)", second)
+    row["second_run"] = "" if not second else (
+        ("precession" if "geometry is returned" in second else "default")
+        + (f" {'+' if how.group(2) == 'better' else '-'}{how.group(1)} %" if how else ""))
     row["worse"] = bool(row["err_pdvc"] > row["err_nominal"] + 1e-6 or row["snr_gain"] < -1e-6)
     return row
 
@@ -523,6 +532,8 @@ def case_line(r: dict) -> str:
     flag = "  WORSE THAN NOMINAL" if r.get("worse") else ""
     if r.get("err_rejected") == r.get("err_rejected"):  # not NaN
         flag += f" (rejected geometry {r['err_rejected']:.3f} px)"
+    if r.get("second_run"):
+        flag += f"  second run: {r['second_run']}"
     return CASE_FMT.format(flag=flag, **r)
 
 

@@ -321,6 +321,14 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
     steps.append(("final (recon + residuals)", tm.get("final", 0.0), "final", None, None))
     steps.append(("assess", tm.get("assess", 0.0), "assess", None, None))
     known = sum(tm.get(k, 0.0) for k in ["init", "zingers", "stages", "final", "assess"])
+    # second_run: the run not returned (the default's or the precession recipe's) and the comparison of the two
+    taken = "first run (default recipe)" in tm
+    for key, label in (("first run (default recipe)", "first run, default recipe (not returned)"),
+                       ("second run (precession recipe)", "second run, precession recipe (not returned)"),
+                       ("second run (comparison)", "second run: comparison of the two")):
+        if key in tm and not (taken and key == "second run (precession recipe)"):
+            steps.append((label, tm[key], "second_run", None, None))
+            known += tm[key]
     other = res.elapsed_s - known
     steps.append(("other: nominal recon, noise, trunc., motion", other, "nominal", None, None))
 

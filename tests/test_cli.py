@@ -101,7 +101,7 @@ def test_interrupted_run_leaves_whole_files_and_resumes(simulated, tmp_path):
         if info.get("event") == "stage" and info.get("scale") == 1:
             raise KeyboardInterrupt
 
-    opts = dict(scales=(2, 1), max_outer=2)
+    opts = dict(scales=(2, 1), max_outer=2, second_run="off")  # the resumed run's own stages, no second recipe
     with pytest.raises(KeyboardInterrupt):
         pdvc.calibrate(proj, geom, vg, out_dir=out, progress=stop_at_fine_scale, **opts)
     assert json.loads((out / "run.json").read_text())["status"] == "running"
@@ -126,7 +126,7 @@ def test_interrupted_within_a_scale_resumes_after_the_last_round(simulated, tmp_
         if info.get("event") == "round" and info.get("iteration") == 1:
             raise KeyboardInterrupt
 
-    opts = dict(scales=(1,), max_outer=4, tol_px=1e-9, oversample=1)
+    opts = dict(scales=(1,), max_outer=4, tol_px=1e-9, oversample=1, second_run="off")
     with pytest.raises(KeyboardInterrupt):
         pdvc.calibrate(proj, geom, vg, out_dir=out, progress=stop_after_second_round, **opts)
     with np.load(out / "checkpoint.npz") as z:  # the warm-up's round and the model's first
@@ -151,7 +151,7 @@ def test_a_resumed_run_keeps_the_background_its_first_round_decided(simulated, t
             raise KeyboardInterrupt
 
     # air = "off": the engine's background decides here (air = "auto" would subtract the drift before the rounds)
-    opts = dict(scales=(1,), max_outer=3, tol_px=1e-9, oversample=1, air="off")
+    opts = dict(scales=(1,), max_outer=3, tol_px=1e-9, oversample=1, air="off", second_run="off")
     with pytest.raises(KeyboardInterrupt), caplog.at_level("INFO", logger="pdvc.calibration"):
         pdvc.calibrate(drifted, geom, vg, out_dir=out, progress=stop_after_first_round, **opts)
     assert "measured again" in caplog.text  # decided in the first round

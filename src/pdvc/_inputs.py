@@ -54,6 +54,7 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -
     ``notes`` (a list), or to the log.
     """
     from .calibration import Stage, resolve_stages, short_scan_reconstruction
+    from .calibration._pipeline import SECOND_RUN_USER_FIELDS
 
     if cal.stage is not None:
         stages = tuple(Stage.from_dict(d) for d in cal.stage)
@@ -67,6 +68,10 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
         truncation=cal.truncation, zingers=cal.zingers, rings=cal.rings, roi=cal.roi, air=cal.air,
+        # a stage list written out in the config, or a model or volume of the user's own, runs as written: no
+        # second recipe (as pdvc.calibrate decides from its keywords)
+        second_run=cal.second_run if cal.stage is None and not any(
+            cal.recipe_parameters().get(k) is not None for k in SECOND_RUN_USER_FIELDS) else "off",
     )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)

@@ -78,6 +78,9 @@ class _Progress:
             msg = f"  motion model ({info.get('elapsed_s', 0.0):.1f} s): {info.get('text', '')}"
         elif event == "assess":
             msg = "uncertainty and motion modes at the geometry kept"
+        elif event == "second_run":
+            msg = (f"the default kept a model without the precession: the {info.get('recipe', 'precession')} recipe runs "
+                   "as well, and the geometry that predicts the views left out better is kept")
         elif event == "rings":
             msg = (f"a pattern of the detector columns holds {100 * info.get('share', 0.0):.0f}% of the residual: the "
                    "detector's fixed pattern (rings) is subtracted from every view and the scan calibrated again")

@@ -84,16 +84,15 @@ def test_candidates_are_a_stage_field_the_default_recipe_sets_unless_the_model_i
 
 def test_a_kept_axis_model_says_what_the_comparison_cannot_see():
     # a precession once per turn hardly changes the cross-validated scores (docs/method.md §5.12): the text
-    # of an axis model kept over the precession model points to the precession recipe, and only that text
-    # (and to the refine stage)
+    # of an axis model kept over the precession model points to the comparison of finished calibrations
+    # (second_run), and only that text
     kept = ModelChoice(winner="axis", own="axis", scores={"axis": 1.0, "precession": 0.998})
-    assert kept.text().startswith("axis kept: no candidate") and 'recipe = "precession"' in kept.text()
-    assert "refine = true" in kept.text()
+    assert kept.text().startswith("axis kept: no candidate") and 'second_run = "auto"' in kept.text()
     won = ModelChoice(winner="precession", own="axis", scores={"axis": 1.0, "precession": 0.9}, gain=0.1)
     simpler = ModelChoice(winner="fixed_axis", own="axis", scores={"fixed_axis": 1.0, "axis": 0.999}, simpler=True,
                           sizes={"fixed_axis": 5, "axis": 20})
     other = ModelChoice(winner="precession", own="precession", scores={"precession": 1.0, "axis": 1.0})
-    assert all("recipe" not in c.text() for c in (won, simpler, other))
+    assert all("second_run" not in c.text() for c in (won, simpler, other))
 
 
 def _run(case, stages, **kw):

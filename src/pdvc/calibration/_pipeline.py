@@ -32,7 +32,8 @@ from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
 from ._init import SHORT_SCAN_OPPOSITE_FRACTION, opposite_fraction
-from ._driver import PosesResult, correlation_volume, data_at_scale, reconstruct, refined_grid, run_stages, stage_background
+from ._driver import (PosesResult, correlation_volume, data_at_scale, nonneg_subsets, reconstruct, refined_grid, run_stages,
+                      stage_background)
 from ._outer import gauge_text
 from ._select import with_model
 from ._stages import Stage, StageError, recipe_stages
@@ -241,6 +242,7 @@ def calibrate(
     rings: str = "auto",
     roi: str = "auto",
     air: str = "auto",
+    second_run: str = "auto",
     noise_variance: Optional[float] = None,
     times=None,
     center=None,
@@ -345,6 +347,16 @@ def calibrate(
         the detector has no air to measure and is left as it is. ``"off"``:
         take the data as they are. The projections given are not modified
         (``docs/method.md`` §5.18).
+    second_run : {"auto", "off"}
+        A precession once per turn is taken up by the default recipe's
+        volume, and its model choice cannot see it. ``"auto"``: when the
+        default recipe kept a model without the precession on a full turn
+        and its finest correlation grid holds at most
+        ``SECOND_RUN_MAX_VOXELS``, the ``precession`` recipe runs as well
+        and the geometry whose reconstruction predicts the views it was not
+        made from better by more than ``SECOND_RUN_GAIN``
+        (:func:`cross_validated_misfit`) is returned; the motion model's
+        note says which and by how much (``docs/method.md`` §5.25).
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -367,7 +379,7 @@ def calibrate(
     t_start = time.perf_counter()
     given = dict(recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, init=init,
                  fix_scale=fix_scale, weights=weights, truncation=truncation, zingers=zingers, roi=roi, air=air,
-                 noise_variance=noise_variance,
+                 second_run=second_run, noise_variance=noise_variance,
                  times=times, center=center, backend=backend, initial_poses=initial_poses, checkpoint=checkpoint,
                  progress=progress, **model)
     p = _validate(projections, geom, vol_geom, weights)
@@ -383,6 +395,8 @@ def calibrate(
         raise CalibrationError(f"roi must be 'auto', 'on' or 'off', got {roi!r}")
     if air not in ("auto", "off"):
         raise CalibrationError(f"air must be 'auto' or 'off', got {air!r}")
+    if second_run not in ("auto", "off"):
+        raise CalibrationError(f"second_run must be 'auto' or 'off', got {second_run!r}")
     if resume and resume.get("rings") == "on":  # the run being resumed had decided to remove them
         rings = "on"
     model, short_scan = short_scan_reconstruction(geom, stages, **model)
@@ -453,12 +467,98 @@ def calibrate(
         log.warning("a pattern of the detector columns holds %.0f%% of the residual at the calibrated geometry (rings "
                     "that pull the poses toward the nominal geometry): rings = 'auto' or 'on' subtracts the detector's "
                     "fixed pattern (docs/method.md)", 100 * share)
+    if second_run == "auto":
+        res = _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, recipe, rings, given, emit, t_start)
     log.info(
         "calibration done in %.1f s (%s): SNR %.2f -> %.2f dB, entropy %.3f -> %.3f bits",
         res.elapsed_s, res.status.name.lower(), float(np.mean(res.snr_before)), float(np.mean(res.snr_after)),
         res.entropy_before, res.entropy_after,
     )
     return res
+
+
+#: ``second_run = "auto"``: the precession recipe's geometry is returned when its reconstruction predicts the views
+#: it was not made from better than the default's by more than this fraction of the misfit (docs/method.md §5.25)
+SECOND_RUN_GAIN = 2e-4
+#: ... and the second run is made only when the default's finest correlation grid holds at most this many voxels
+#: (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
+SECOND_RUN_MAX_VOXELS = 200**3
+
+
+#: model fields that make the user's model and volume: given, the default's run is the user's and runs alone
+SECOND_RUN_USER_FIELDS = ("basis", "frame", "fixed", "reconstruct", "oversample", "oversample_by", "candidates")
+
+
+def _second_run_reason(recipe, drv, geom, model, stage_list, vol_geom) -> tuple:
+    """(run it, why not): whether ``second_run = "auto"`` runs the precession recipe after the default's stages.
+
+    ``model``: the options the user gave (a model or volume of their own: no second run)."""
+    choice = drv.model_choice
+    if recipe != "default" or choice is None or "precession" not in choice.scores or choice.winner == "precession":
+        return False, ""
+    if any(model.get(k) is not None for k in SECOND_RUN_USER_FIELDS):
+        return False, ""
+    if opposite_fraction(geom) < SHORT_SCAN_OPPOSITE_FRACTION:
+        return False, ""  # half a turn: the views left out cannot tell the models apart (docs/method.md §5.12)
+    s = min(st.scale for st in stage_list)
+    k = max(st.oversample for st in stage_list if st.scale == s)
+    grid = refined_grid(vol_geom.binned(s) if s > 1 else vol_geom, k)
+    n = int(np.prod(grid.shape))
+    if n > SECOND_RUN_MAX_VOXELS:
+        return False, (f"the precession recipe was not run as well: its finest correlation grid, "
+                       f"{'x'.join(map(str, grid.shape))}, is above {SECOND_RUN_MAX_VOXELS:.3g} voxels (second_run); "
+                       f"for a stage that wobbles, run recipe = \"precession\"")
+    return True, ""
+
+
+def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, recipe, rings, given, emit, t_start):
+    """The precession recipe run as well, and the geometry that predicts the views left out better returned.
+
+    The default recipe's model choice scores the models on one volume, which
+    has taken up a precession once per turn; two finished calibrations are
+    compared on reconstructions that never saw the views they predict
+    (:func:`cross_validated_misfit`, at the default's coarsest scale, with
+    its detector weights).
+    """
+    from ._select import cross_validated_misfit
+
+    run, why_not = _second_run_reason(recipe, drv, geom, given, stage_list, vol_geom)
+    if not run:
+        if why_not:
+            log.info(why_not)
+            res = _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {why_not}"))
+        return res
+    scales = tuple(sorted({st.scale for st in stage_list}, reverse=True))
+    log.info("second run: the default kept the %s model; the precession recipe runs as well (scales %s), and the "
+             "geometry whose reconstruction predicts the views left out better is kept", drv.model_choice.winner, scales)
+    emit(dict(event="second_run", recipe="precession"))
+    t0 = time.perf_counter()
+    # with the data treated as this run treated them (rings: "on" when this is the run again without them)
+    alt = calibrate(projections, geom, vol_geom, **dict(given, recipe="precession", stages=None, scales=scales, rings=rings,
+                                                       checkpoint=None, resume=None, second_run="off"))
+    t_alt = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    scale = max(scales)
+    # each volume by ordered subsets, as the calibration's own (the verdicts of the plain iteration within 0.01 %)
+    m = cross_validated_misfit(p, vol_geom, [res.geometry, alt.geometry], scale=scale, weights=weights,
+                               subsets=nonneg_subsets(geom.n_views // 2), backend=given.get("backend", "auto"))
+    t_cv = time.perf_counter() - t0
+    gain = 1.0 - m[1] / m[0] if m[0] > 0 else 0.0
+    take = bool(alt.status.success and gain > SECOND_RUN_GAIN)
+    verdict = (f"then the precession recipe ran as well ({t_alt:.1f} s): its geometry predicts the views left out of "
+               f"its reconstruction {100 * abs(gain):.2g} % {'better' if gain >= 0 else 'worse'} than this one's "
+               f"(cross-validated misfit {m[0]:.6g} against {m[1]:.6g}, scale {scale}, {t_cv:.1f} s; more than "
+               f"{100 * SECOND_RUN_GAIN:.2g} % better needed{'' if alt.status.success else ', and it did not succeed: ' + alt.message}): ")
+    chosen = alt if take else res
+    verdict += "the precession recipe's geometry is returned" if take else "the default's geometry is kept"
+    log.info("second run: %s", verdict)
+    emit(dict(event="model", text=verdict, elapsed_s=t_alt + t_cv))
+    timings = dict(chosen.timings, **{"second run (precession recipe)": t_alt, "second run (comparison)": t_cv})
+    if take:
+        timings["first run (default recipe)"] = res.elapsed_s
+    model_text = f"{res.options.get('model', '')}; {verdict}"
+    return _replace(chosen, options=dict(chosen.options, model=model_text, second_run=verdict), timings=timings,
+                    elapsed_s=time.perf_counter() - t_start)
 
 
 def _replace(res, **kw):

@@ -141,9 +141,8 @@ class ModelChoice:
         if self.changed or self.own != "axis" or "precession" not in self.scores:
             return ""
         # measured on 92^3 tuning scans: gains of 0.0-2 % where the precession model lowers the error 5-20x
-        return ("; a precession once per turn hardly changes this comparison (the reconstruction takes it up): for a "
-                "stage that wobbles, set refine = true (the precession model on non-negative least-squares volumes after "
-                "this one) or run recipe = \"precession\" (docs/method.md §5.22)")
+        return ("; a precession once per turn hardly changes this comparison (the reconstruction takes it up): "
+                "second_run = \"auto\" compares finished calibrations of both recipes (docs/method.md §5.25)")
 
     def _verdict(self) -> str:
         parts = ", ".join(f"{k} {v:.4g}" for k, v in self.scores.items())
@@ -310,7 +309,8 @@ def _positive_int(x, name: str, least: int = 1) -> int:
 
 
 def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *, scale: int = 1, oversample: int = 2,
-                           folds: int = 2, n_iter: int = 30, weights=None, backend: str = "auto") -> np.ndarray:
+                           folds: int = 2, n_iter: int = 30, weights=None, subsets: int = 1,
+                           backend: str = "auto") -> np.ndarray:
     """How well each geometry's reconstruction predicts the views it was not made from (lower is better).
 
     A comparison of finished calibrations (the geometries two recipes
@@ -341,6 +341,10 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
     weights : array, optional
         Detector weights at full resolution (e.g. rays that leave the volume
         at 0), broadcastable to the projections.
+    subsets : int
+        Ordered subsets of each volume's views (:func:`pdvc.recon.nonneg_ls`;
+        1: the plain iteration). :func:`pdvc.calibrate`'s ``second_run``
+        takes the calibration's rule (``docs/method.md`` §5.25).
 
     Returns
     -------
@@ -356,6 +360,7 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
     s = _positive_int(scale, "scale")
     k = _positive_int(oversample, "oversample")
     n_sets = _positive_int(folds, "folds", 2)
+    n_sub = _positive_int(subsets, "subsets")
     shape = np.shape(projections)
     for i, g in enumerate(geoms):
         if shape != (g.n_views,) + tuple(g.det_shape):
@@ -374,7 +379,7 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
         for r in range(n_sets):
             fit, test = idx[idx % n_sets != r], idx[idx % n_sets == r]
             vol = nonneg_ls(p_s[fit], fine, g_s[fit], coarsen=k, n_iter=n_iter, weights=None if w is None else w[fit],
-                            backend=backend)
+                            subsets=n_sub, backend=backend)
             d = (forward(vol, fine, g_s[test], backend=backend) - p_s[test]).astype(np.float64)
             wt = 1.0 if w is None else w[test]
             rss += float(np.sum(wt * d * d))

@@ -153,6 +153,9 @@ that type needs) are required; everything else has the default shown.
     air = "auto"                # "auto" | "off": an air level left in the line integrals (a flat field that does not
                                 # match, [preprocess] air = "none") is subtracted for the calibration and its volumes
                                 # when it is measurably off 0 (pdvc.io.estimate_air); "off": the data as they are
+    second_run = "auto"         # "auto" | "off": when the default recipe keeps a model without the precession on a
+                                # full turn (and its finest correlation grid is at most 200^3), run the precession
+                                # recipe as well and keep the geometry that predicts the views left out better
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
     # The output folder's config.toml always holds the full stage list that ran.
@@ -412,6 +415,7 @@ class CalibrationConfig:
     rings: str = "auto"
     roi: str = "auto"
     air: str = "auto"
+    second_run: str = "auto"
 
     def recipe_parameters(self) -> dict:
         """The recipe parameters that are set, as :func:`pdvc.calibration.recipe_stages` keywords."""
@@ -512,7 +516,7 @@ class Config:
         cal = self.calibration
         if stages is not None:
             keep = {k: getattr(cal, k) for k in ("recipe", "center", "fix_scale", "backend", "init", "noise", "truncation", "zingers",
-                                                "rings", "roi", "air")}
+                                                "rings", "roi", "air", "second_run")}
             cal = CalibrationConfig(stage=tuple(s.to_dict() for s in stages), **keep)
         return dataclasses.replace(self, geometry=g, volume=vol, calibration=cal)
 
@@ -919,6 +923,7 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         rings=_choice(t.pop("rings", d.rings), w + "rings", ("auto", "on", "off")),
         roi=_choice(t.pop("roi", d.roi), w + "roi", ("auto", "on", "off")),
         air=_choice(t.pop("air", d.air), w + "air", ("auto", "off")),
+        second_run=_choice(t.pop("second_run", d.second_run), w + "second_run", ("auto", "off")),
         **kw,
     )
     t.finish(_CALIBRATION_KEYS)

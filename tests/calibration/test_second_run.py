@@ -1,0 +1,117 @@
+"""second_run: the precession recipe run as well, and the geometry whose reconstruction predicts the views left out better kept."""
+
+import numpy as np
+import pytest
+
+import pdvc
+from pdvc.calibration import _pipeline, _select, resolve_stages
+from pdvc.calibration._select import ModelChoice
+from pdvc.io._config import ConfigError
+from tests.correlation.cases import make_case
+
+
+class _Outcome:
+    """What ``_second_run_reason`` reads of the driver's outcome."""
+
+    def __init__(self, choice):
+        self.model_choice = choice
+
+
+AXIS_KEPT = ModelChoice(winner="axis", own="axis", scores={"axis": 1.0, "precession": 1.001})
+
+
+def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_precession_on_a_full_turn():
+    vg = pdvc.VolumeGeometry((48, 48, 48))
+    st = resolve_stages((58, 67), vol_shape=vg.shape)
+    full = pdvc.parallel(np.linspace(0, 2 * np.pi, 90, endpoint=False), det_shape=(58, 67), pixel=1.0)
+    half = pdvc.parallel(np.linspace(0, np.pi, 90, endpoint=False), det_shape=(58, 67), pixel=1.0)
+    assert _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, st, vg) == (True, "")
+    assert _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, dict(tol_px=0.01), st, vg) == (True, "")
+    chosen = ModelChoice(winner="precession", own="axis", scores={"axis": 1.0, "precession": 0.9}, gain=0.1)
+    no_precession = ModelChoice(winner="axis", own="axis", scores={"fixed_axis": 1.0, "axis": 0.9})
+    for recipe, choice, geom, model in (
+        ("precession", AXIS_KEPT, full, {}),  # another recipe
+        ("default", None, full, {}),  # no comparison made (the user chose the model)
+        ("default", chosen, full, {}),  # the precession model runs already
+        ("default", no_precession, full, {}),  # the precession is not among the candidates
+        ("default", AXIS_KEPT, half, {}),  # half a turn: the views left out cannot tell the models apart
+        ("default", AXIS_KEPT, full, dict(reconstruct="fdk")),  # the user's own volume
+        ("default", AXIS_KEPT, full, dict(oversample=1)),
+    ):
+        assert _pipeline._second_run_reason(recipe, _Outcome(choice), geom, model, st, vg) == (False, "")
+    # a finest correlation grid above SECOND_RUN_MAX_VOXELS: not made, and the note says why and what to do
+    big = pdvc.VolumeGeometry((128, 128, 128))
+    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, resolve_stages((160, 128), vol_shape=big.shape), big)
+    assert not run and "256x256x256" in why and 'recipe = "precession"' in why
+
+
+@pytest.fixture(scope="module")
+def case():
+    return make_case("offset", n=24, n_views=48, seed=3)
+
+
+@pytest.mark.parametrize("misfits, taken", [((1.0, 0.99), True), ((1.0, 1.0001), False)])
+def test_the_geometry_whose_reconstruction_predicts_better_is_returned(case, monkeypatch, misfits, taken):
+    # the rule, with the comparison's verdict given: the precession recipe's geometry only when it predicts
+    # the views left out better by more than SECOND_RUN_GAIN, and the motion model's note says so
+    seen = []
+
+    def misfit(p, vg, geometries, **kw):
+        seen.append((len(geometries), kw.get("scale"), kw.get("weights"), kw.get("subsets")))
+        return np.array(misfits, float)
+
+    calls = []
+    inner = _pipeline.calibrate
+
+    def calibrate(*a, **kw):
+        calls.append({k: kw.get(k) for k in ("recipe", "rings", "zingers", "second_run", "checkpoint", "jolts")})
+        return inner(*a, **kw)
+
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
+    monkeypatch.setattr(_select, "cross_validated_misfit", misfit)
+    monkeypatch.setattr(_pipeline, "calibrate", calibrate)
+    g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
+    before = p.copy()
+    res = pdvc.calibrate(p, g, vg, jolts=False, rings="off", zingers="off", checkpoint=lambda state: None)
+    assert np.array_equal(p, before)
+    # the precession recipe, on the data as the first run treated them, its own run (no checkpoints, no third run)
+    assert calls == [dict(recipe="precession", rings="off", zingers="off", second_run="off", checkpoint=None, jolts=False)]
+    # one comparison of the two geometries, at the default's coarsest scale, by ordered subsets of >= 30 views
+    assert seen == [(2, 1, None, 1)]
+    assert res.options["recipe"] == ("precession" if taken else "default")
+    assert ("precession recipe's geometry is returned" in res.options["second_run"]) is taken
+    assert res.options["second_run"] in res.options["model"]
+    assert {"second run (precession recipe)", "second run (comparison)"} <= set(res.timings)
+    if taken:
+        assert res.timings["first run (default recipe)"] > 0
+
+
+def test_second_run_off_runs_the_default_alone_and_bad_values_are_refused(case, monkeypatch):
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: pytest.fail("second_run='off' must not ask"))
+    g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
+    res = pdvc.calibrate(p, g, vg, jolts=False, second_run="off")
+    assert "second_run" not in res.options and res.options["recipe"] == "default"
+    with pytest.raises(pdvc.calibration.CalibrationError, match="second_run must be 'auto' or 'off'"):
+        pdvc.calibrate(p, g, vg, second_run="on")
+
+
+def test_the_config_takes_second_run_and_a_written_stage_list_runs_alone(tmp_path):
+    from pdvc._inputs import calibration_options
+    from pdvc.io import load_config
+
+    def cfg(**cal):
+        d = {"data": {"path": "scan"}, "geometry": {"type": "parallel", "pixel": 1.0}}
+        if cal:
+            d["calibration"] = cal
+        return load_config(d, base_dir=tmp_path).calibration
+
+    assert cfg().second_run == "auto" and cfg(second_run="off").second_run == "off"
+    with pytest.raises(ConfigError, match="second_run"):
+        cfg(second_run="sometimes")
+    assert calibration_options(cfg(), (64, 64))["second_run"] == "auto"
+    assert calibration_options(cfg(second_run="off"), (64, 64))["second_run"] == "off"
+    staged = cfg(stage=[{"name": "model", "basis": "fourier:1"}])
+    assert calibration_options(staged, (64, 64))["second_run"] == "off"
+    # a volume of the user's own (the PSI example's oversample = 1), as pdvc.calibrate(oversample=1) decides
+    assert calibration_options(cfg(oversample=1), (64, 64))["second_run"] == "off"
+    assert calibration_options(cfg(tol_px=0.005), (64, 64))["second_run"] == "auto"
