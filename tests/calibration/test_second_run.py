@@ -115,3 +115,22 @@ def test_the_config_takes_second_run_and_a_written_stage_list_runs_alone(tmp_pat
     # a volume of the user's own (the PSI example's oversample = 1), as pdvc.calibrate(oversample=1) decides
     assert calibration_options(cfg(oversample=1), (64, 64))["second_run"] == "off"
     assert calibration_options(cfg(tol_px=0.005), (64, 64))["second_run"] == "auto"
+
+
+def test_a_second_run_that_fails_keeps_the_first_runs_result(case, monkeypatch):
+    # the precession recipe raising (here: a library error from inside its run) must not lose the default's result
+    inner = _pipeline.calibrate
+
+    def calibrate(*a, **kw):
+        if kw.get("recipe") == "precession":
+            raise pdvc.calibration.CalibrationError("the precession recipe could not run")
+        return inner(*a, **kw)
+
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
+    monkeypatch.setattr(_pipeline, "calibrate", calibrate)
+    g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
+    res = pdvc.calibrate(p, g, vg, jolts=False)
+    alone = pdvc.calibrate(p, g, vg, jolts=False, second_run="off")
+    assert res.options["recipe"] == "default" and res.status == alone.status
+    assert np.allclose(res.geometry.vectors, alone.geometry.vectors)
+    assert "failed" in res.options["second_run"] and "could not run" in res.options["model"]

@@ -533,9 +533,17 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
              "geometry whose reconstruction predicts the views left out better is kept", drv.model_choice.winner, scales)
     emit(dict(event="second_run", recipe="precession"))
     t0 = time.perf_counter()
-    # with the data treated as this run treated them (rings: "on" when this is the run again without them)
-    alt = calibrate(projections, geom, vol_geom, **dict(given, recipe="precession", stages=None, scales=scales, rings=rings,
-                                                       checkpoint=None, resume=None, second_run="off"))
+    try:
+        # with the data treated as this run treated them (rings: "on" when this is the run again without them)
+        alt = calibrate(projections, geom, vol_geom, **dict(given, recipe="precession", stages=None, scales=scales,
+                                                           rings=rings, checkpoint=None, resume=None, second_run="off"))
+    except (PdvcError, ValueError, ArithmeticError, MemoryError, np.linalg.LinAlgError) as exc:
+        # a second opinion that fails loses nothing the first run found
+        verdict = (f"then the precession recipe was run as well and failed after {time.perf_counter() - t0:.1f} s "
+                   f"({type(exc).__name__}: {exc}): the default's geometry is kept")
+        log.warning("second run: %s", verdict)
+        return _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {verdict}",
+                                          second_run=verdict), elapsed_s=time.perf_counter() - t_start)
     t_alt = time.perf_counter() - t0
     t0 = time.perf_counter()
     scale = max(scales)
