@@ -554,7 +554,7 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     gain = 1.0 - m[1] / m[0] if m[0] > 0 else 0.0
     take = bool(alt.status.success and gain > SECOND_RUN_GAIN)
     verdict = (f"then the precession recipe ran as well ({t_alt:.1f} s): its geometry predicts the views left out of "
-               f"its reconstruction {100 * abs(gain):.2g} % {'better' if gain >= 0 else 'worse'} than this one's "
+               f"its reconstruction {100 * abs(gain):.3g} % {'better' if gain >= 0 else 'worse'} than this one's "
                f"(cross-validated misfit {m[0]:.6g} against {m[1]:.6g}, scale {scale}, {t_cv:.1f} s; more than "
                f"{100 * SECOND_RUN_GAIN:.2g} % better needed{'' if alt.status.success else ', and it did not succeed: ' + alt.message}): ")
     chosen = alt if take else res
