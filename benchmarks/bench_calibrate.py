@@ -321,12 +321,16 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
     steps.append(("final (recon + residuals)", tm.get("final", 0.0), "final", None, None))
     steps.append(("assess", tm.get("assess", 0.0), "assess", None, None))
     known = sum(tm.get(k, 0.0) for k in ["init", "zingers", "stages", "final", "assess"])
-    # second_run: the run not returned (the default's or the precession recipe's) and the comparison of the two
-    taken = "first run (default recipe)" in tm
+    # second_run: the runs not returned (the default's, the precession recipe's, its run with a precession twice a
+    # turn) and the comparisons
+    twice = "second run (precession twice a turn)" in tm
+    returned = None if "first run (default recipe)" not in tm else (
+        "second run (precession twice a turn)" if twice else "second run (precession recipe)")
     for key, label in (("first run (default recipe)", "first run, default recipe (not returned)"),
                        ("second run (precession recipe)", "second run, precession recipe (not returned)"),
-                       ("second run (comparison)", "second run: comparison of the two")):
-        if key in tm and not (taken and key == "second run (precession recipe)"):
+                       ("second run (precession twice a turn)", "second run, precession twice a turn (not returned)"),
+                       ("second run (comparison)", "second run: comparisons")):
+        if key in tm and key != returned:
             steps.append((label, tm[key], "second_run", None, None))
             known += tm[key]
     other = res.elapsed_s - known

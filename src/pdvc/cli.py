@@ -78,6 +78,9 @@ class _Progress:
             msg = f"  motion model ({info.get('elapsed_s', 0.0):.1f} s): {info.get('text', '')}"
         elif event == "assess":
             msg = "uncertainty and motion modes at the geometry kept"
+        elif event == "second_run" and info.get("basis") == "drift:2":
+            msg = ("the precession recipe predicts the views left out worse than the default: it runs once more with a "
+                   "precession at one and two cycles per turn")
         elif event == "second_run":
             msg = (f"the default kept a model without the precession: the {info.get('recipe', 'precession')} recipe runs "
                    "as well, and the geometry that predicts the views left out better is kept")

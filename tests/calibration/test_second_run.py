@@ -86,6 +86,50 @@ def test_the_geometry_whose_reconstruction_predicts_better_is_returned(case, mon
         assert res.timings["first run (default recipe)"] > 0
 
 
+@pytest.mark.parametrize("first, second, runs, taken", [
+    ((1.0, 1.01), (0.99,), 2, "twice"),  # once per turn 1 % worse: run again twice a turn, which predicts 1 % better
+    ((1.0, 1.01), (1.0001,), 2, None),  # ... and predicts worse than the default: the default's kept
+    ((1.0, 1.0003), None, 1, None),  # 0.03 % worse, within SECOND_RUN_TWICE_LOSS: no third run
+])
+def test_a_precession_recipe_that_predicts_worse_runs_again_with_a_precession_twice_a_turn(
+        case, monkeypatch, first, second, runs, taken):
+    # the rule of docs/method.md §5.26, with the comparisons' verdicts given: the once-per-turn recipe predicting the
+    # views left out worse than the default by more than SECOND_RUN_TWICE_LOSS runs again with basis drift:2, whose
+    # geometry alone is then scored (the default's misfit is reused) and returned when it predicts better than the
+    # default's by more than SECOND_RUN_GAIN
+    assert _pipeline.SECOND_RUN_TWICE_LOSS > _pipeline.SECOND_RUN_GAIN
+    answers, seen = [first, second], []
+
+    def misfit(p, vg, geometries, **kw):
+        seen.append((len(geometries), kw.get("scale"), kw.get("subsets")))
+        return np.array(answers[len(seen) - 1], float)
+
+    calls, inner = [], _pipeline.calibrate
+
+    def calibrate(*a, **kw):
+        calls.append((kw.get("recipe"), kw.get("basis"), kw.get("second_run"), kw.get("max_outer")))
+        return inner(*a, **kw)
+
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
+    monkeypatch.setattr(_select, "cross_validated_misfit", misfit)
+    monkeypatch.setattr(_pipeline, "calibrate", calibrate)
+    g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
+    res = pdvc.calibrate(p, g, vg, jolts=False, rings="off", zingers="off")
+    # the run twice a turn gets more rounds (a richer model) unless the user set them
+    twice = ("precession", "drift:2", "off", _pipeline.SECOND_RUN_TWICE_ROUNDS)
+    assert calls == [("precession", None, "off", None), twice][:runs]
+    assert seen == [(2, 1, 1), (1, 1, 1)][:runs]
+    text = res.options["second_run"]
+    assert ("(basis drift:2)" in text) is (runs == 2)
+    assert ("precession recipe's geometry is returned" in text) is (taken is not None)
+    assert ("second run (precession twice a turn)" in res.timings) is (runs == 2)
+    if taken:
+        assert any("basis=drift:2" in st for st in res.options["stages"]) and text.endswith("(basis drift:2)")
+        assert res.timings["first run (default recipe)"] > 0 and res.options["recipe"] == "precession"
+    else:
+        assert res.options["recipe"] == "default"
+
+
 def test_second_run_off_runs_the_default_alone_and_bad_values_are_refused(case, monkeypatch):
     monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: pytest.fail("second_run='off' must not ask"))
     g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom

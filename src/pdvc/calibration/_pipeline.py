@@ -356,7 +356,11 @@ def calibrate(
         and the geometry whose reconstruction predicts the views it was not
         made from better by more than ``SECOND_RUN_GAIN``
         (:func:`cross_validated_misfit`) is returned; the motion model's
-        note says which and by how much (``docs/method.md`` §5.25).
+        note says which and by how much (``docs/method.md`` §5.25). When
+        the precession recipe's geometry predicts them worse than the
+        default's by more than ``SECOND_RUN_TWICE_LOSS``, it runs once more
+        with a precession at one and two cycles per turn (``basis =
+        "drift:2"``), and that geometry is compared instead (§5.26).
     initial_poses : Poses, optional
         Where to start instead of the coarse initialisation.
     checkpoint, resume
@@ -480,6 +484,13 @@ def calibrate(
 #: ``second_run = "auto"``: the precession recipe's geometry is returned when its reconstruction predicts the views
 #: it was not made from better than the default's by more than this fraction of the misfit (docs/method.md §5.25)
 SECOND_RUN_GAIN = 2e-4
+#: ... and when the precession recipe's geometry predicts them worse than the default's by more than this fraction, the
+#: precession recipe runs once more with a precession at one and two cycles per turn (lab-frame drift:2;
+#: docs/method.md §5.26)
+SECOND_RUN_TWICE_LOSS = 5e-4
+#: ... that run's rounds per scale (the recipe's 8 and 4 more: its model has 7 functions per free parameter, not 5; a
+#: tuning scan's run reached 8 rounds still moving and stopped at 9 with 12)
+SECOND_RUN_TWICE_ROUNDS = 12
 #: ... and the second run is made only when the default's finest correlation grid holds at most this many voxels
 #: (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
 SECOND_RUN_MAX_VOXELS = 200**3
@@ -518,7 +529,10 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     has taken up a precession once per turn; two finished calibrations are
     compared on reconstructions that never saw the views they predict
     (:func:`cross_validated_misfit`, at the default's coarsest scale, with
-    its detector weights).
+    its detector weights). A precession recipe that predicts worse than the
+    default by more than ``SECOND_RUN_TWICE_LOSS`` runs again with the
+    lab-frame ``drift:2`` basis (a precession twice a turn, which neither
+    model holds), and that run is compared instead.
     """
     from ._select import cross_validated_misfit
 
@@ -531,37 +545,72 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     scales = tuple(sorted({st.scale for st in stage_list}, reverse=True))
     log.info("second run: the default kept the %s model; the precession recipe runs as well (scales %s), and the "
              "geometry whose reconstruction predicts the views left out better is kept", drv.model_choice.winner, scales)
-    emit(dict(event="second_run", recipe="precession"))
-    t0 = time.perf_counter()
-    try:
-        # with the data treated as this run treated them (rings: "on" when this is the run again without them)
-        alt = calibrate(projections, geom, vol_geom, **dict(given, recipe="precession", stages=None, scales=scales,
-                                                           rings=rings, checkpoint=None, resume=None, second_run="off"))
-    except (PdvcError, ValueError, ArithmeticError, MemoryError, np.linalg.LinAlgError) as exc:
-        # a second opinion that fails loses nothing the first run found
-        verdict = (f"then the precession recipe was run as well and failed after {time.perf_counter() - t0:.1f} s "
-                   f"({type(exc).__name__}: {exc}): the default's geometry is kept")
+
+    def precession_run(basis):
+        """(result or None, seconds, why it failed): the precession recipe on the data as this run treated them."""
+        emit(dict(event="second_run", recipe="precession", basis=basis or "recipe's"))
+        t0 = time.perf_counter()
+        kw = dict(given, recipe="precession", stages=None, scales=scales, rings=rings, checkpoint=None, resume=None,
+                  second_run="off")  # rings: "on" when this is the run again without them
+        if basis is not None:
+            kw["basis"] = basis
+            kw["max_outer"] = given.get("max_outer") or SECOND_RUN_TWICE_ROUNDS
+        try:
+            return calibrate(projections, geom, vol_geom, **kw), time.perf_counter() - t0, ""
+        except (PdvcError, ValueError, ArithmeticError, MemoryError, np.linalg.LinAlgError) as exc:
+            # a second opinion that fails loses nothing the first run found
+            return None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
+
+    def misfit(geometries):
+        # each volume by ordered subsets, as the calibration's own (the verdicts of the plain iteration within 0.01 %)
+        return cross_validated_misfit(p, vol_geom, geometries, scale=max(scales), weights=weights,
+                                      subsets=nonneg_subsets(geom.n_views // 2), backend=given.get("backend", "auto"))
+
+    def failed(text, t_run, why):
+        verdict = f"{text} failed after {t_run:.1f} s ({why}): the default's geometry is kept"
         log.warning("second run: %s", verdict)
         return _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {verdict}",
                                           second_run=verdict), elapsed_s=time.perf_counter() - t_start)
-    t_alt = time.perf_counter() - t0
+
+    alt, t_alt, why = precession_run(None)
+    if alt is None:
+        return failed("then the precession recipe was run as well and", t_alt, why)
     t0 = time.perf_counter()
-    scale = max(scales)
-    # each volume by ordered subsets, as the calibration's own (the verdicts of the plain iteration within 0.01 %)
-    m = cross_validated_misfit(p, vol_geom, [res.geometry, alt.geometry], scale=scale, weights=weights,
-                               subsets=nonneg_subsets(geom.n_views // 2), backend=given.get("backend", "auto"))
+    m = misfit([res.geometry, alt.geometry])
     t_cv = time.perf_counter() - t0
     gain = 1.0 - m[1] / m[0] if m[0] > 0 else 0.0
+
+    def compared(name, t_run, g, m1):
+        return (f"{name} ({t_run:.1f} s): its geometry predicts the views left out of its reconstruction "
+                f"{100 * abs(g):.3g} % {'better' if g >= 0 else 'worse'} than the default's (cross-validated misfit "
+                f"{m[0]:.6g} against {m1:.6g}, scale {max(scales)})")
+
+    verdict = f"then {compared('the precession recipe ran as well', t_alt, gain, m[1])}"
+    timings_alt, basis = {"second run (precession recipe)": t_alt}, ""
+    if gain < -SECOND_RUN_TWICE_LOSS:
+        # a motion the default's model holds better than a precession once per turn: a precession twice a turn is
+        # one (the lab-frame drift:2 basis; docs/method.md §5.26)
+        log.info("second run: %s; the precession recipe runs once more with a precession at one and two cycles per "
+                 "turn (basis drift:2)", verdict)
+        alt2, t_alt2, why = precession_run("drift:2")
+        timings_alt["second run (precession twice a turn)"] = t_alt2
+        if alt2 is None:
+            verdict += f"; the precession recipe with a precession twice a turn failed after {t_alt2:.1f} s ({why})"
+        else:
+            t0 = time.perf_counter()
+            m2 = float(misfit([alt2.geometry])[0])
+            t_cv += time.perf_counter() - t0
+            alt, gain, basis = alt2, 1.0 - m2 / m[0] if m[0] > 0 else 0.0, " (basis drift:2)"
+            verdict += "; then " + compared("with a precession at one and two cycles per turn (basis drift:2)",
+                                            t_alt2, gain, m2)
     take = bool(alt.status.success and gain > SECOND_RUN_GAIN)
-    verdict = (f"then the precession recipe ran as well ({t_alt:.1f} s): its geometry predicts the views left out of "
-               f"its reconstruction {100 * abs(gain):.3g} % {'better' if gain >= 0 else 'worse'} than this one's "
-               f"(cross-validated misfit {m[0]:.6g} against {m[1]:.6g}, scale {scale}, {t_cv:.1f} s; more than "
-               f"{100 * SECOND_RUN_GAIN:.2g} % better needed{'' if alt.status.success else ', and it did not succeed: ' + alt.message}): ")
+    verdict += (f"; comparisons {t_cv:.1f} s; more than {100 * SECOND_RUN_GAIN:.2g} % better needed"
+                f"{'' if alt.status.success else ', and it did not succeed: ' + alt.message}: ")
     chosen = alt if take else res
-    verdict += "the precession recipe's geometry is returned" if take else "the default's geometry is kept"
+    verdict += f"the precession recipe's geometry is returned{basis}" if take else "the default's geometry is kept"
     log.info("second run: %s", verdict)
-    emit(dict(event="model", text=verdict, elapsed_s=t_alt + t_cv))
-    timings = dict(chosen.timings, **{"second run (precession recipe)": t_alt, "second run (comparison)": t_cv})
+    emit(dict(event="model", text=verdict, elapsed_s=sum(timings_alt.values()) + t_cv))
+    timings = dict(chosen.timings, **timings_alt, **{"second run (comparison)": t_cv})
     if take:
         timings["first run (default recipe)"] = res.elapsed_s
     model_text = f"{res.options.get('model', '')}; {verdict}"
