@@ -39,6 +39,9 @@ def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_
         ("default", AXIS_KEPT, full, dict(oversample=1)),
     ):
         assert _pipeline._second_run_reason(recipe, _Outcome(choice), geom, model, st, vg) == (False, "")
+    # a region-of-interest scan (material outside the volume in every view): not made, and the note says why
+    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, st, vg, roi_scan=True)
+    assert not run and "region-of-interest" in why
     # a finest correlation grid above SECOND_RUN_MAX_VOXELS: not made, and the note says why and what to do
     big = pdvc.VolumeGeometry((128, 128, 128))
     run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, resolve_stages((160, 128), vol_shape=big.shape), big)
