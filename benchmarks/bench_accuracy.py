@@ -468,9 +468,12 @@ def run_case(c: Case) -> dict:
     # (the last comparison decided: the precession recipe's, or its run again twice a turn, "precession:2")
     how = re.findall(r"reconstruction ([0-9.e+-]+) % (better|worse)", second)
     twice = "(basis drift:2)" in second and len(how) > 1
-    row["second_run"] = "" if not second else (
-        ("precession" + (":2" if twice else "") if "geometry is returned" in second else "default" + (" (2)" if twice else ""))
-        + (f" {'+' if how[-1][1] == 'better' else '-'}{how[-1][0]} %" if how else ""))
+    if "geometry is returned" in second:
+        label = "precession:2" if twice else "precession"
+    else:
+        label = "default (2)" if twice else "default"
+    diff = f" {'+' if how[-1][1] == 'better' else '-'}{how[-1][0]} %" if how else ""
+    row["second_run"] = label + diff if second else ""
     row["worse"] = bool(row["err_pdvc"] > row["err_nominal"] + 1e-6 or row["snr_gain"] < -1e-6)
     return row
 

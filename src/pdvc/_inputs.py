@@ -65,13 +65,14 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -
             if note:
                 notes.append(note) if notes is not None else log.info(note)
         stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **params)
+    params = cal.recipe_parameters()
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,
         truncation=cal.truncation, zingers=cal.zingers, rings=cal.rings, roi=cal.roi, air=cal.air,
         # a stage list written out in the config, or a model or volume of the user's own, runs as written: no
         # second recipe (as pdvc.calibrate decides from its keywords)
         second_run=cal.second_run if cal.stage is None and not any(
-            cal.recipe_parameters().get(k) is not None for k in SECOND_RUN_USER_FIELDS) else "off",
+            params.get(k) is not None for k in SECOND_RUN_USER_FIELDS) else "off",
     )
     if cal.center is not None:
         opts["center"] = tuple(cal.center)

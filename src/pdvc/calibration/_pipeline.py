@@ -586,7 +586,11 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     t0 = time.perf_counter()
     m = misfit([res.geometry, alt.geometry])
     t_cv = time.perf_counter() - t0
-    gain = 1.0 - m[1] / m[0] if m[0] > 0 else 0.0
+
+    def better(m1):  # the fraction by which a misfit is below the default's
+        return 1.0 - m1 / m[0] if m[0] > 0 else 0.0
+
+    gain = better(m[1])
 
     def compared(name, t_run, g, m1):
         return (f"{name} ({t_run:.1f} s): its geometry predicts the views left out of its reconstruction "
@@ -608,7 +612,7 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
             t0 = time.perf_counter()
             m2 = float(misfit([alt2.geometry])[0])
             t_cv += time.perf_counter() - t0
-            alt, gain, basis = alt2, 1.0 - m2 / m[0] if m[0] > 0 else 0.0, " (basis drift:2)"
+            alt, gain, basis = alt2, better(m2), " (basis drift:2)"
             verdict += "; then " + compared("with a precession at one and two cycles per turn (basis drift:2)",
                                             t_alt2, gain, m2)
     take = bool(alt.status.success and gain > SECOND_RUN_GAIN)
