@@ -57,6 +57,7 @@ combinations).
     python benchmarks/bench_accuracy.py --tiny                  # 3 cases, n=24, 48 views (under a minute)
     python benchmarks/bench_accuracy.py --quick                 # 12 held-out cases, n=40, <=180 views (~10 min, 2 cores)
     python benchmarks/bench_accuracy.py --scales                # 8 held-out cases, n=92: detectors of 110x129 px, two scales
+    python benchmarks/bench_accuracy.py --medium --motions prec1,prec2,combo   # n=128: precessions above the cap
     python benchmarks/bench_accuracy.py                         # full: 48 held-out cases, n=64, 90..720 views
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
     python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
@@ -87,6 +88,9 @@ SIZES = {
     "quick": dict(n=40, views=(90, 120, 180), cases=12),
     # detectors of 110 x 129 px: the default recipe runs two scales (2 -> 1), which n=40 and n=64 do not
     "scales": dict(n=92, views=(90, 120, 180), cases=8),
+    # detectors of 154 x 179 px: two scales whose finest correlation grid (256^3) is above the second run's cap, so the
+    # precession recipe runs at scale 2 only (docs/method.md §5.27); about 3 minutes a case on 2 cores
+    "medium": dict(n=128, views=(90, 120, 180), cases=6),
     "full": dict(n=64, views=(90, 180, 360, 720), cases=48),
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
@@ -241,12 +245,15 @@ def case(seed: int, size: str = "quick") -> Case:
     return Case(seed, family, n, i0, cone, n_views, motion, p)
 
 
-def suite(size: str, split: str, n_cases: int | None, seed0: int) -> list:
+def suite(size: str, split: str, n_cases: int | None, seed0: int, motions=None) -> list:
+    """The cases of a split, from ``seed0`` on; ``motions``: only the cases of these motions (the seeds keep theirs)."""
     want = SIZES[size]["cases"] if n_cases is None else n_cases
     out, s = [], seed0
     while len(out) < want:
         if split == "all" or (split == "tuning") == (s % 2 == 0):
-            out.append(case(s, size))
+            c = case(s, size)
+            if motions is None or c.motion in motions:
+                out.append(c)
         s += 1
     return out
 
@@ -510,7 +517,8 @@ def header(args) -> list:
         f"pdvc {pdvc.__version__} at git {rev}",
         f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}",
         f"suite: size {args.size} (n={SIZES[args.size]['n']}, views {SIZES[args.size]['views']}), split {args.split}, "
-        f"seed0 {args.seed0}; pdvc.calibrate options {OPTIONS or 'library defaults'}"
+        f"seed0 {args.seed0}{'; motions ' + args.motions + ' (--motions)' if args.motions else ''}; "
+        f"pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
         + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
         + (f", in blobs within {AIR['zinger_size']}x{AIR['zinger_size']} px (--zinger-size)"
@@ -631,11 +639,17 @@ def main(argv=None) -> int:
     size.add_argument("--quick", dest="size", action="store_const", const="quick", help="12 cases, n=40, <=180 views")
     size.add_argument("--scales", dest="size", action="store_const", const="scales",
                       help="8 cases, n=92, <=180 views: detectors large enough for two scales (2 -> 1)")
+    size.add_argument("--medium", dest="size", action="store_const", const="medium",
+                      help="6 cases, n=128, <=180 views: two scales, the finest correlation grid above the second "
+                           "run's cap")
     ap.set_defaults(size="full")
     ap.add_argument("--split", choices=("tuning", "heldout", "all"), default="heldout",
                     help="even seeds tune, odd seeds are held out (default: report the held-out set)")
     ap.add_argument("--cases", type=int, default=None, help="number of cases (default per size)")
     ap.add_argument("--seed0", type=int, default=0, help="first seed considered")
+    ap.add_argument("--motions", default=None, metavar="M1,M2",
+                    help=f"only the cases of these motions, among {', '.join(MOTIONS)} (the seeds are drawn as "
+                         "without it and the others skipped)")
     ap.add_argument("--csv", default=None, help="write the per-case rows to this CSV file")
     ap.add_argument("--threads", type=int, default=2, help="numba threads (default 2)")
     ap.add_argument("--verbose", action="store_true", help="show pdvc's log")
@@ -684,6 +698,12 @@ def main(argv=None) -> int:
     ROI["radius"] = float(args.roi)
     if SCAN["half_turn"] and SCAN["short_scan"]:
         ap.error("--half-turn and --short-scan exclude each other")
+    motions = None
+    if args.motions is not None:
+        motions = tuple(m.strip() for m in args.motions.split(",") if m.strip())
+        bad = sorted(set(motions) - set(MOTIONS))
+        if bad or not motions:
+            ap.error(f"--motions takes names among {', '.join(MOTIONS)}; got {args.motions!r}")
     for item in args.option:
         key, _, value = item.partition("=")
         OPTIONS[key.strip()] = _toml_value(value)
@@ -693,7 +713,7 @@ def main(argv=None) -> int:
 
     for line in header(args):
         print(line)
-    cases = suite(args.size, args.split, args.cases, args.seed0)
+    cases = suite(args.size, args.split, args.cases, args.seed0, motions)
     print(f"{len(cases)} cases (seeds {[c.seed for c in cases]})")
     print(flush=True)
     rows = []

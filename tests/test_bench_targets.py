@@ -27,3 +27,24 @@ def test_the_targets_follow_the_rows():
         wide = [_row(i, "drift", e) for i, e in enumerate([0.01] * 8 + [0.3, 0.3])]
         smooth = [line for line in bench.targets(wide) if "smooth motions" in line][0]
         assert "median 0.010 px (<= 0.05: met)" in smooth and "(<= 0.1: NOT met)" in smooth
+
+
+def test_the_suite_keeps_each_seeds_case_and_filters_by_motion():
+    with benchmark_module("bench_accuracy") as bench:
+        every = bench.suite("medium", "tuning", 12, 0)
+        some = bench.suite("medium", "tuning", 3, 0, motions=("prec2", "combo"))
+        assert len(some) == 3 and all(c.motion in ("prec2", "combo") for c in some)
+        assert all(c.seed % 2 == 0 and c.n == 128 for c in some)
+        # a seed draws the same case with or without the filter: the filter only skips seeds
+        drawn = {c.seed: c for c in every}
+        assert all(drawn[c.seed] == c for c in some if c.seed in drawn)
+        assert [c.seed for c in every if c.motion in ("prec2", "combo")][:3] == [c.seed for c in some]
+
+
+def test_an_unknown_motion_is_refused_by_name(capsys):
+    import pytest
+
+    with benchmark_module("bench_accuracy") as bench:
+        with pytest.raises(SystemExit):
+            bench.main(["--tiny", "--motions", "prec1,wobble"])
+    assert "--motions takes names among offset, tilt_det" in capsys.readouterr().err

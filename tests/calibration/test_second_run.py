@@ -42,9 +42,17 @@ def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_
     # a region-of-interest scan (material outside the volume in every view): not made, and the note says why
     run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, st, vg, roi_scan=True)
     assert not run and "region-of-interest" in why
-    # a finest correlation grid above SECOND_RUN_MAX_VOXELS: not made, and the note says why and what to do
+    # a finest correlation grid above SECOND_RUN_MAX_VOXELS: made at the coarser scales whose grid is not
+    # (docs/method.md §5.27); when no scale's is, not made, and the note says why and what to do
     big = pdvc.VolumeGeometry((128, 128, 128))
-    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, resolve_stages((160, 128), vol_shape=big.shape), big)
+    two = resolve_stages((160, 128), vol_shape=big.shape)
+    assert sorted({s.scale for s in two}) == [1, 2]
+    assert _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, two, big) == (True, "")
+    assert _pipeline._second_run_scales(two, big) == ((2,), (1,))  # 128^3 at scale 2; 256^3 at scale 1 left out
+    assert _pipeline._second_run_scales(st, vg) == ((1,), ())
+    one = resolve_stages((160, 128), vol_shape=big.shape, scales=(1,))
+    assert _pipeline._second_run_scales(one, big) == ((), (1,))
+    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, one, big)
     assert not run and "256x256x256" in why and 'recipe = "precession"' in why
 
 
@@ -131,6 +139,32 @@ def test_a_precession_recipe_that_predicts_worse_runs_again_with_a_precession_tw
         assert res.timings["first run (default recipe)"] > 0 and res.options["recipe"] == "precession"
     else:
         assert res.options["recipe"] == "default"
+
+
+def test_on_a_large_scan_the_precession_recipe_runs_at_the_coarse_scales_only(case, monkeypatch):
+    # the finest scale's correlation grid above SECOND_RUN_MAX_VOXELS (here lowered so that the 24^3 case's scale 1,
+    # a 48^3 grid, is above it and scale 2's 24^3 grid is not): the precession recipe runs at scale 2 alone with
+    # SECOND_RUN_COARSE_ROUNDS rounds, its geometry is compared at scale 2 and the note says which scales ran
+    monkeypatch.setattr(_pipeline, "SECOND_RUN_MAX_VOXELS", 30**3)
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
+    monkeypatch.setattr(_select, "cross_validated_misfit", lambda p, vg, gs, **kw: seen.append(kw["scale"]) or np.ones(len(gs)))
+    calls, seen, inner = [], [], _pipeline.calibrate
+
+    def calibrate(*a, **kw):
+        calls.append({k: kw.get(k) for k in ("recipe", "scales", "max_outer", "guards", "basis")})
+        return inner(*a, **kw)
+
+    monkeypatch.setattr(_pipeline, "calibrate", calibrate)
+    g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
+    res = pdvc.calibrate(p, g, vg, scales=(2, 1), jolts=False, rings="off", zingers="off")
+    assert calls == [dict(recipe="precession", scales=(2,), max_outer=_pipeline.SECOND_RUN_COARSE_ROUNDS,
+                          guards=_pipeline.SECOND_RUN_COARSE_GUARDS, basis=None)]
+    assert seen == [2] and res.options["recipe"] == "default"  # predicts no better: the default's geometry kept
+    assert "at scale 2 only (the correlation grid of scale 1, 48x48x48" in res.options["second_run"]
+    # the user's rounds are kept
+    calls.clear()
+    pdvc.calibrate(p, g, vg, scales=(2, 1), max_outer=3, jolts=False, rings="off", zingers="off")
+    assert calls[0]["max_outer"] == 3 and calls[0]["scales"] == (2,)
 
 
 def test_second_run_off_runs_the_default_alone_and_bad_values_are_refused(case, monkeypatch):

@@ -36,7 +36,7 @@ from ._driver import (PosesResult, correlation_volume, data_at_scale, nonneg_sub
                       stage_background)
 from ._outer import gauge_text
 from ._select import with_model
-from ._stages import Stage, StageError, recipe_stages
+from ._stages import _RECIPE_ROUNDS, NONNEG_COARSE_ROUNDS, Stage, StageError, recipe_stages
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -350,12 +350,14 @@ def calibrate(
     second_run : {"auto", "off"}
         A precession once per turn is taken up by the default recipe's
         volume, and its model choice cannot see it. ``"auto"``: when the
-        default recipe kept a model without the precession on a full turn
-        and its finest correlation grid holds at most
-        ``SECOND_RUN_MAX_VOXELS``, the ``precession`` recipe runs as well
-        and the geometry whose reconstruction predicts the views it was not
-        made from better by more than ``SECOND_RUN_GAIN``
-        (:func:`cross_validated_misfit`) is returned; the motion model's
+        default recipe kept a model without the precession on a full turn,
+        the ``precession`` recipe runs as well, at the default's scales
+        whose correlation grid holds at most ``SECOND_RUN_MAX_VOXELS`` (on
+        a large scan the coarser ones only, with
+        ``SECOND_RUN_COARSE_ROUNDS`` rounds; §5.27), and the geometry whose
+        reconstruction predicts the views it was not made from better by
+        more than ``SECOND_RUN_GAIN`` (:func:`cross_validated_misfit`) is
+        returned; the motion model's
         note says which and by how much (``docs/method.md`` §5.25). When
         the precession recipe's geometry predicts them worse than the
         default's by more than ``SECOND_RUN_TWICE_LOSS``, it runs once more
@@ -492,9 +494,18 @@ SECOND_RUN_TWICE_LOSS = 5e-4
 #: ... that run's rounds per scale (the recipe's 8 and 4 more: its model has 7 functions per free parameter, not 5; a
 #: tuning scan's run reached 8 rounds still moving and stopped at 9 with 12)
 SECOND_RUN_TWICE_ROUNDS = 12
-#: ... and the second run is made only when the default's finest correlation grid holds at most this many voxels
-#: (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
+#: ... and it runs at the default's scales whose correlation grid holds at most this many voxels, not at all when none
+#: does (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
 SECOND_RUN_MAX_VOXELS = 200**3
+#: ... where the finer scales are above it, the precession recipe runs at the coarser ones only, with this many rounds
+#: (twice the recipe's, as the short scans' coarse scales: its loop creeps along the near-gauge modes, cheaply at a
+#: coarse scale, and no finer scale refines what it leaves; docs/method.md §5.15, §5.27)
+SECOND_RUN_COARSE_ROUNDS = NONNEG_COARSE_ROUNDS * _RECIPE_ROUNDS["precession"]
+#: ... and these guards: the consistency guard alone. The recipe's entropy guard judges the FDK volume, which does not
+#: hold a non-planar orbit; on the 128^3 benchmark scan with a 0.5 deg precession it stopped the coarse run after two
+#: rounds at 0.213 px, where the run goes on to 0.019 px (docs/method.md §5.27). At the finest scale it stays: on the
+#: 48^3 precession_drift case it stops a walk that the cross-validation would have taken (§5.12)
+SECOND_RUN_COARSE_GUARDS = ("consistency",)
 
 
 #: model fields that make the user's model and volume: given, the default's run is the user's and runs alone
@@ -518,15 +529,33 @@ def _second_run_reason(recipe, drv, geom, model, stage_list, vol_geom, roi_scan:
         # field had its 0.042 px geometry replaced by a 0.147 px one that predicted 0.12 % better (docs/method.md §5.26)
         return False, ("the precession recipe was not run as well: on a region-of-interest scan the views left out "
                        "cannot rank two geometries (second_run; docs/method.md §5.26)")
-    s = min(st.scale for st in stage_list)
-    k = max(st.oversample for st in stage_list if st.scale == s)
-    grid = refined_grid(vol_geom.binned(s) if s > 1 else vol_geom, k)
-    n = int(np.prod(grid.shape))
-    if n > SECOND_RUN_MAX_VOXELS:
-        return False, (f"the precession recipe was not run as well: its finest correlation grid, "
-                       f"{'x'.join(map(str, grid.shape))}, is above {SECOND_RUN_MAX_VOXELS:.3g} voxels (second_run); "
+    if not _second_run_scales(stage_list, vol_geom)[0]:
+        grid = _correlation_grid(stage_list, vol_geom, max(st.scale for st in stage_list))
+        return False, (f"the precession recipe was not run as well: its coarsest correlation grid, "
+                       f"{'x'.join(map(str, grid.shape))}, is above {_voxels(SECOND_RUN_MAX_VOXELS)} voxels (second_run); "
                        f"for a stage that wobbles, run recipe = \"precession\"")
     return True, ""
+
+
+def _voxels(n: int) -> str:
+    """``n`` voxels as ``edge^3`` when it is a cube."""
+    e = round(n ** (1 / 3))
+    return f"{e}^3" if e**3 == n else f"{n:.3g}"
+
+
+def _correlation_grid(stage_list, vol_geom, scale):
+    """The grid the stages of ``scale`` correlate on (their oversampling of the binned volume)."""
+    k = max(st.oversample for st in stage_list if st.scale == scale)
+    return refined_grid(vol_geom.binned(scale) if scale > 1 else vol_geom, k)
+
+
+def _second_run_scales(stage_list, vol_geom) -> tuple:
+    """(scales, dropped): the default's scales, coarse to fine, whose correlation grid holds at most
+    ``SECOND_RUN_MAX_VOXELS``, and the finer ones left out (the precession recipe's rounds are non-negative
+    least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27)."""
+    scales = sorted({st.scale for st in stage_list}, reverse=True)
+    fits = [int(np.prod(_correlation_grid(stage_list, vol_geom, s).shape)) <= SECOND_RUN_MAX_VOXELS for s in scales]
+    return tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
 
 
 def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, recipe, rings, given, emit, t_start,
@@ -550,9 +579,16 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
             log.info(why_not)
             res = _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {why_not}"))
         return res
-    scales = tuple(sorted({st.scale for st in stage_list}, reverse=True))
-    log.info("second run: the default kept the %s model; the precession recipe runs as well (scales %s), and the "
-             "geometry whose reconstruction predicts the views left out better is kept", drv.model_choice.winner, scales)
+    scales, dropped = _second_run_scales(stage_list, vol_geom)
+    coarse = ""
+    if dropped:
+        grid = _correlation_grid(stage_list, vol_geom, max(dropped))
+        coarse = (f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only (the correlation grid "
+                  f"of scale {max(dropped)}, {'x'.join(map(str, grid.shape))}, is above {_voxels(SECOND_RUN_MAX_VOXELS)} "
+                  f"voxels)")
+    log.info("second run: the default kept the %s model; the precession recipe runs as well%s, and the geometry whose "
+             "reconstruction predicts the views left out better is kept", drv.model_choice.winner,
+             coarse or f" (scales {scales})")
 
     def precession_run(basis):
         """(result or None, seconds, why it failed): the precession recipe on the data as this run treated them."""
@@ -562,7 +598,11 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
                   second_run="off")  # rings: "on" when this is the run again without them
         if basis is not None:
             kw["basis"] = basis
-            kw["max_outer"] = given.get("max_outer") or SECOND_RUN_TWICE_ROUNDS
+        if dropped and given.get("guards") is None and SECOND_RUN_COARSE_GUARDS is not None:
+            kw["guards"] = SECOND_RUN_COARSE_GUARDS
+        if given.get("max_outer") is None and (basis is not None or dropped):
+            kw["max_outer"] = max(SECOND_RUN_TWICE_ROUNDS if basis is not None else 0,
+                                  SECOND_RUN_COARSE_ROUNDS if dropped else 0)
         try:
             return calibrate(projections, geom, vol_geom, **kw), time.perf_counter() - t0, ""
         except (PdvcError, ValueError, ArithmeticError, MemoryError, np.linalg.LinAlgError) as exc:
@@ -597,7 +637,7 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
                 f"{100 * abs(g):.3g} % {'better' if g >= 0 else 'worse'} than the default's (cross-validated misfit "
                 f"{m[0]:.6g} against {m1:.6g}, scale {max(scales)})")
 
-    verdict = f"then {compared('the precession recipe ran as well', t_alt, gain, m[1])}"
+    verdict = f"then {compared('the precession recipe ran as well' + coarse, t_alt, gain, m[1])}"
     timings_alt, basis = {"second run (precession recipe)": t_alt}, ""
     if gain < -SECOND_RUN_TWICE_LOSS:
         # a motion the default's model holds better than a precession once per turn: a precession twice a turn is

@@ -154,9 +154,9 @@ that type needs) are required; everything else has the default shown.
                                 # match, [preprocess] air = "none") is subtracted for the calibration and its volumes
                                 # when it is measurably off 0 (pdvc.io.estimate_air); "off": the data as they are
     second_run = "auto"         # "auto" | "off": when the default recipe keeps a model without the precession on a
-                                # full turn (its finest correlation grid at most 200^3, not a region-of-interest
-                                # scan), run the precession recipe as well and keep the geometry that predicts the
-                                # views left out better; where it predicts them worse, it runs once more with a
+                                # full turn (not a region-of-interest scan), run the precession recipe as well (at
+                                # the scales whose correlation grid is at most 200^3) and keep the geometry that
+                                # predicts the views left out better; where it predicts them worse, it runs once more with a
                                 # precession twice a turn (basis "drift:2") and that geometry is compared instead
     noise = "image"             # γ²: "image" (Immerkær's estimator on the line integrals) | "counts"
                                 # (Poisson statistics of raw counts with flats, photon-counting gain 1)
