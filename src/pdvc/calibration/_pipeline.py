@@ -357,8 +357,8 @@ def calibrate(
         ``SECOND_RUN_COARSE_ROUNDS`` rounds; §5.27), and the geometry whose
         reconstruction predicts the views it was not made from better by
         more than ``SECOND_RUN_GAIN`` (:func:`cross_validated_misfit`) is
-        returned; the motion model's
-        note says which and by how much (``docs/method.md`` §5.25). When
+        returned; the motion model's note says which and by how much
+        (``docs/method.md`` §5.25). When
         the precession recipe's geometry predicts them worse than the
         default's by more than ``SECOND_RUN_TWICE_LOSS``, it runs once more
         with a precession at one and two cycles per turn (``basis =
@@ -598,7 +598,7 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
                   second_run="off")  # rings: "on" when this is the run again without them
         if basis is not None:
             kw["basis"] = basis
-        if dropped and given.get("guards") is None and SECOND_RUN_COARSE_GUARDS is not None:
+        if dropped and given.get("guards") is None:
             kw["guards"] = SECOND_RUN_COARSE_GUARDS
         if given.get("max_outer") is None and (basis is not None or dropped):
             kw["max_outer"] = max(SECOND_RUN_TWICE_ROUNDS if basis is not None else 0,
