@@ -129,3 +129,13 @@ def test_thin_detector_keeps_voxels_on_the_edge_rows():
     f[:, 15:25, 12:20] = 1.0
     r = fbp(forward(f, vg, g), vg, g)
     assert abs(float(r[:, 15:25, 12:20].mean()) - 1.0) < 0.1  # was 0.5 off when the edge rows dropped
+
+
+def test_detector_above_32_bit_pixel_indices_is_refused():
+    """The kernel's pixel indices are 32-bit: a detector of 2**32 pixels gets a clear error, not a wrap-around."""
+    from pdvc.errors import GeometryError
+    from pdvc.recon import fdk
+
+    g = circular_cone(np.array([0.0, 1.0]), sod=40.0, odd=25.0, det_shape=(2**16, 2**16), pixel=1.0)
+    with pytest.raises(GeometryError, match=r"det_shape.*2\*\*32"):
+        fdk(np.zeros((2, 2, 2), np.float32), VolumeGeometry((4, 4, 4)), g)

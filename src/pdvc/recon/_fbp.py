@@ -34,6 +34,8 @@ def _check_inputs(projections, vol_geom, geom, out, views_per_block):
     nr, nc = geom.det_shape
     if nr < 2 or nc < 2:
         raise GeometryError(f"geom.det_shape must be at least (2, 2) for interpolation, got {geom.det_shape}")
+    if nr * nc >= 2**32:
+        raise GeometryError(f"geom.det_shape must have fewer than 2**32 pixels (32-bit pixel indices), got {geom.det_shape}")
     arr = np.asarray(projections)
     want = (geom.n_views, nr, nc)
     if arr.ndim != 3 or arr.shape != want:
