@@ -84,7 +84,6 @@ def backproject_block(vol, q, P, zinv):  # pragma: no cover - compiled
     cmax = nc - 1.0
     rmax = nr - 1.0
     jmax = np.uint64(nc - 2)
-    imax = np.uint64(nr - 2)
     jmax32 = np.uint32(nc - 2)
     imax32 = np.uint32(nr - 2)
     unr32 = np.uint32(nr)
