@@ -138,6 +138,22 @@ def opposite_fraction(geom: VectorGeometry) -> float:
     return 2.0 * pairs.shape[0] / geom.n_views
 
 
+def distinct_directions(geom: VectorGeometry) -> int:
+    """How many distinct projection directions the views hold.
+
+    In parallel beam, view θ + 180° holds the line integrals of view θ,
+    mirrored: a pair whose angles coincide within a tenth of the angular
+    step counts once (a full turn of an even number of evenly spaced views
+    has half as many directions as views; an odd number interleaves them).
+    A cone-beam view is its own direction.
+    """
+    if geom.kind != "parallel":
+        return int(geom.n_views)
+    theta = _scan_angles(geom)
+    step = _opposite_pairs(theta, None)[1]
+    return int(geom.n_views - _opposite_pairs(theta, 0.1 * step)[0].shape[0])
+
+
 def _opposite_pairs(theta: np.ndarray, max_mismatch: float | None) -> tuple[np.ndarray, float]:
     """Unordered pairs ``(i, j)``, ``i < j``, with ``θ_j`` nearest to ``θ_i + π`` within the tolerance."""
     n = theta.size

@@ -31,7 +31,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._init import SHORT_SCAN_OPPOSITE_FRACTION, opposite_fraction
+from ._init import SHORT_SCAN_OPPOSITE_FRACTION, distinct_directions, opposite_fraction
 from ._driver import (PosesResult, correlation_volume, data_at_scale, nonneg_subsets, reconstruct, refined_grid, run_stages,
                       stage_background)
 from ._outer import gauge_text
@@ -269,9 +269,13 @@ def calibrate(
         A stage list to run instead of a recipe.
     scales, max_outer, warmup, **model
         Recipe parameters: coarse-to-fine scales (``"auto"``: from the
-        detector), rounds per scale, warm-up rounds, and fields of the model
-        stage (``basis``, ``frame``, ``fixed``, ``method``, ``reconstruct``,
-        ``oversample``, ``tol_px``, ``max_iter``, ...; :class:`Stage`). A
+        detector and the volume, :func:`pdvc.calibration.auto_scales`;
+        in parallel beam without the finest ones that the views' distinct
+        directions undersample by more than ``MAX_SCALE_UNDERSAMPLING``, a
+        full turn of few views: ``docs/method.md`` §5.27), rounds per
+        scale, warm-up rounds, and fields of the model stage (``basis``,
+        ``frame``, ``fixed``, ``method``, ``reconstruct``, ``oversample``,
+        ``tol_px``, ``max_iter``, ...; :class:`Stage`). A
         short scan (parallel over half a turn, cone beam over 180° plus
         the fan angle) without ``reconstruct`` (nor ``stages``)
         reconstructs by ``nonneg_ls`` (:func:`short_scan_reconstruction`).
@@ -409,6 +413,14 @@ def calibrate(
     if short_scan:
         log.info(short_scan)
     stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+    scales_text = "as given" if scales != "auto" or stages is not None else "automatic (auto_scales)"
+    if scales == "auto" and stages is None:
+        kept, why = _direction_limited_scales(geom, stage_list)
+        if why:
+            scales_text = why
+            log.info(why)
+            stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=None, scales=kept,
+                                        max_outer=max_outer, warmup=warmup, **model)
     if short_scan is None and stages is not None and any(s.reconstruct == "nonneg_ls" for s in stage_list):
         short_scan = short_scan_reconstruction(geom)[1]  # stages resolved from a config by the same rule: say why
     emit = progress if progress is not None else (lambda info: None)
@@ -448,7 +460,7 @@ def calibrate(
             "not removed (rings = 'off')" if rings == "off" else "not removed: no fixed pattern of the detector stood out "
             "in the residual at the calibrated geometry"),
         model=drv.model_choice.text() if drv.model_choice is not None else "as given (no candidates compared)",
-        reconstruction=short_scan or "as the stages set it",
+        reconstruction=short_scan or "as the stages set it", scales=scales_text,
     )
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])
@@ -535,6 +547,39 @@ def _second_run_reason(recipe, drv, geom, model, stage_list, vol_geom, roi_scan:
                        f"{'x'.join(map(str, grid.shape))}, is above {_voxels(SECOND_RUN_MAX_VOXELS)} voxels (second_run); "
                        f"for a stage that wobbles, run recipe = \"precession\"")
     return True, ""
+
+
+#: The finest scales of an automatic schedule are left out while the views' distinct directions undersample that
+#: scale's detector columns by more than this (π/2 columns per direction is the sampling FBP needs): on the 128³
+#: tuning split a parallel full turn of 90 views (45 directions, 6.25×) walked at scale 1 from 0.013 to 0.078 px,
+#: one of 60 directions (4.69×) did not move (docs/method.md §5.27)
+MAX_SCALE_UNDERSAMPLING = 5.5
+
+
+def _direction_limited_scales(geom, stage_list) -> tuple:
+    """(scales, why): the stages' scales without the finest ones whose detector the views' distinct directions
+    undersample by more than ``MAX_SCALE_UNDERSAMPLING``, the coarsest always kept; why: '' when none is left out.
+
+    Parallel beam only: the scans seen to walk were parallel full turns, whose mirrored views halve the directions;
+    cone-beam scans of 90 views (3.1x) refined well at the finest scale, and fewer were not measured."""
+    scales = sorted({st.scale for st in stage_list}, reverse=True)
+    if geom.kind != "parallel":
+        return tuple(scales), ""
+    n_dir = distinct_directions(geom)
+    ratio = {s: np.pi / 2 * (geom.det_shape[1] / s) / max(n_dir, 1) for s in scales}
+    kept = list(scales)
+    while len(kept) > 1 and ratio[kept[-1]] > MAX_SCALE_UNDERSAMPLING:
+        kept.pop()
+    if len(kept) == len(scales):
+        return tuple(scales), ""
+    left = scales[len(kept):]
+    return tuple(kept), (
+        f"scales: {', '.join(map(str, left))} left out, the calibration ends at scale {kept[-1]}: the {geom.n_views} "
+        f"views hold {n_dir} distinct directions (parallel beam: a view and the one half a turn later see the same "
+        f"rays); FBP at scale {left[0]} ({geom.det_shape[1] // left[0]} detector columns) needs about "
+        f"{np.pi / 2 * geom.det_shape[1] / left[0]:.0f} directions, {ratio[left[0]]:.2f}x as many (above "
+        f"{MAX_SCALE_UNDERSAMPLING}, where a finer scale was seen to walk away from the coarser one's result; "
+        f"docs/method.md §5.27). The final volume is still reconstructed at full resolution")
 
 
 def _voxels(n: int) -> str:

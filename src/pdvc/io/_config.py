@@ -120,6 +120,7 @@ that type needs) are required; everything else has the default shown.
                                 # not fitted to, before the model stage; [] = none (also when basis/frame/fixed are
                                 # set); "fixed_axis" adds the simpler model of an offset, tilted axis (full turns)
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
+                                # (without the finest scales a parallel full turn of few views undersamples)
     warmup = 1                  # translation-only rounds before a model with free rotations, at the first scale
     # refine = false            # true: the default recipe (its model chosen from the data, its own volume) ends with
                                 #   up to 4 rounds of the precession model on nonneg_ls volumes at the coarsest scale

@@ -104,6 +104,8 @@ def build_report(out, result, *, projections, angles, params_lab):
         summary["motion model"] = options["model"]
     if options.get("reconstruction", "").startswith("a short"):
         summary["reconstruction"] = options["reconstruction"]
+    if options.get("scales", "").startswith("scales:"):  # the automatic schedule left out its finest scales
+        summary["scales"] = options["scales"]
     if "air" in options:
         summary["air level (what the rays that miss the sample read)"] = options["air"]
     if "background" in options:
