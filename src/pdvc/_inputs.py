@@ -64,7 +64,7 @@ def calibration_options(cal, det_shape, vol_shape=None, geom=None, notes=None) -
             params, note = short_scan_reconstruction(geom, **params)
             if note:
                 notes.append(note) if notes is not None else log.info(note)
-        stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, **params)
+        stages = resolve_stages(det_shape, vol_shape=vol_shape, recipe=cal.recipe, geom=geom, notes=notes, **params)
     params = cal.recipe_parameters()
     opts = dict(
         recipe=cal.recipe, stages=stages, fix_scale=bool(cal.fix_scale), backend=cal.backend, init=cal.init,

@@ -62,29 +62,44 @@ def test_the_coarsest_scale_is_always_kept():
 
 def test_calibrate_runs_the_kept_scales_only(monkeypatch):
     """calibrate resolves the stages again at the kept scales, and only when the scales are automatic."""
+    from pdvc import VolumeGeometry
+
     seen = []
 
     def stop(*a, **k):
-        seen.append(k.get("scales"))
         raise RuntimeError("stop")
 
-    det = (154, 179)
-    g = parallel(_turn(90), det_shape=det, pixel=1.0)
-    from pdvc import VolumeGeometry
-
-    monkeypatch.setattr(_pipeline, "_air", lambda *a, **k: stop(scales="reached"))
-    real = _pipeline.resolve_stages
+    monkeypatch.setattr(_pipeline, "_air", stop)  # past the stage list, before any work
+    real = _pipeline.recipe_stages
 
     def spy(*a, **k):
         seen.append(k.get("scales"))
         return real(*a, **k)
 
-    monkeypatch.setattr(_pipeline, "resolve_stages", spy)
+    monkeypatch.setattr(_pipeline, "recipe_stages", spy)
+    det = (154, 179)
+    g = parallel(_turn(90), det_shape=det, pixel=1.0)
     p = np.zeros((90,) + det, np.float32)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="stop"):
         _pipeline.calibrate(p, g, VolumeGeometry((128, 128, 128)))
-    assert seen == ["auto", (2,), "reached"]
+    assert seen == ["auto", (2,)]
     seen.clear()
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="stop"):
         _pipeline.calibrate(p, g, VolumeGeometry((128, 128, 128)), scales=[2, 1])
-    assert seen == [[2, 1], "reached"]
+    assert seen == [[2, 1]]
+
+
+def test_the_config_path_applies_the_same_rule(tmp_path):
+    """``pdvc calibrate`` resolves the stages from the config before pdvc.calibrate: the same schedule, and a note."""
+    from pdvc._inputs import calibration_options
+    from pdvc.io import load_config
+
+    det = (154, 179)
+    cfg = load_config({"data": {"path": "s"}, "geometry": {"type": "parallel", "pixel": 1}}, base_dir=tmp_path)
+    notes = []
+    opts = calibration_options(cfg.calibration, det, (128, 128, 128), parallel(_turn(90), det_shape=det, pixel=1.0), notes)
+    assert {s.scale for s in opts["stages"]} == {2}
+    assert len(notes) == 1 and "45 distinct directions" in notes[0]
+    notes.clear()
+    opts = calibration_options(cfg.calibration, det, (128, 128, 128), parallel(_turn(120), det_shape=det, pixel=1.0), notes)
+    assert {s.scale for s in opts["stages"]} == {1, 2} and notes == []

@@ -155,8 +155,13 @@ def _snr_of(p, res, weights) -> np.ndarray:
     return np.asarray(snr_db(p, res, axis=(1, 2)), float)
 
 
-def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, scales="auto", max_outer=None, warmup=1, **model) -> tuple:
-    """The stage list a calibration runs: ``stages`` as given, or the recipe's with the model overrides."""
+def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, scales="auto", max_outer=None, warmup=1,
+                   geom: Optional[VectorGeometry] = None, notes: Optional[list] = None, **model) -> tuple:
+    """The stage list a calibration runs: ``stages`` as given, or the recipe's with the model overrides.
+
+    With ``geom`` and automatic ``scales``, a parallel-beam scan leaves out the finest scales its views' distinct
+    directions undersample (:func:`_direction_limited_scales`); why goes to ``notes`` (a list), or to the log.
+    """
     try:
         if stages is not None:
             if model or scales != "auto" or max_outer is not None:
@@ -166,7 +171,14 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
             if not out or not all(isinstance(s, Stage) for s in out):
                 raise CalibrationError("stages must be a non-empty sequence of pdvc.calibration.Stage")
             return out
-        return recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+        out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+        if geom is not None and isinstance(scales, str) and scales == "auto":
+            kept, why = _direction_limited_scales(geom, out)
+            if why:
+                notes.append(why) if notes is not None else log.info(why)
+                out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=kept, max_outer=max_outer,
+                                    warmup=warmup, **model)
+        return out
     except StageError as exc:
         raise CalibrationError(str(exc)) from None
 
@@ -412,15 +424,13 @@ def calibrate(
     model, short_scan = short_scan_reconstruction(geom, stages, **model)
     if short_scan:
         log.info(short_scan)
-    stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales, max_outer=max_outer, warmup=warmup, **model)
-    scales_text = "as given" if scales != "auto" or stages is not None else "automatic (auto_scales)"
-    if scales == "auto" and stages is None:
-        kept, why = _direction_limited_scales(geom, stage_list)
-        if why:
-            scales_text = why
-            log.info(why)
-            stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=None, scales=kept,
-                                        max_outer=max_outer, warmup=warmup, **model)
+    scale_notes: list = []
+    stage_list = resolve_stages(geom.det_shape, vol_shape=vol_geom.shape, recipe=recipe, stages=stages, scales=scales,
+                                max_outer=max_outer, warmup=warmup, geom=geom, notes=scale_notes, **model)
+    for note in scale_notes:
+        log.info(note)
+    auto = stages is None and isinstance(scales, str) and scales == "auto"
+    scales_text = "; ".join(scale_notes) or ("automatic (auto_scales)" if auto else "as given")
     if short_scan is None and stages is not None and any(s.reconstruct == "nonneg_ls" for s in stage_list):
         short_scan = short_scan_reconstruction(geom)[1]  # stages resolved from a config by the same rule: say why
     emit = progress if progress is not None else (lambda info: None)
