@@ -12,6 +12,7 @@ import pytest
 
 import pdvc
 from pdvc._demo import run_demo
+from pdvc._inputs import load_scan
 from pdvc.cli import main
 from pdvc.geometry import reprojection_error, sample_points
 
@@ -55,6 +56,11 @@ def test_cli_simulate_inspect_calibrate_reconstruct(simulated, tmp_path, capsys)
     assert run["status"] == "complete" and "gauge" in run["gauge"]
     log_text = (out / "pdvc.log").read_text()
     assert "calibration done" in log_text and "INFO" in log_text
+    # what was read and assumed of the data (the notes `pdvc inspect` prints) is kept in the output folder
+    notes = list(load_scan(cfg).notes)
+    assert any(n.startswith("read ") for n in notes)
+    assert run["inputs"] == notes
+    assert all(f"input: {n}" in log_text for n in notes)
     for name in ("geometry.npy", "geometry_nominal.npy", "geometry_astra.json", "geometry_tigre.json", "motion.csv",
                  "result.h5", "volume.tif", "report.html", "config.toml", "snr_per_view.png", "residuals.png"):
         assert (out / name).is_file(), name
@@ -68,6 +74,10 @@ def test_cli_simulate_inspect_calibrate_reconstruct(simulated, tmp_path, capsys)
     assert e_cal < 0.25 * e_nom, (e_cal, e_nom)
     html = (out / "report.html").read_text()
     assert "snr_per_view.png" in html and "entropy" in html
+    import html as _html
+
+    inputs = html.split("Inputs: what was read and assumed", 1)[1].split("</section>", 1)[0]
+    assert all(f"<li>{_html.escape(n)}</li>" in inputs for n in notes)
     assert "zingers, hot and dead pixels" in html and "air level (what the rays that miss the sample read)" in html
     assert ("before the background per view" in html) == ("a plane per view fitted" in html)
     assert "background per view" in html and "background = &#x27;auto&#x27;" in html.replace("&#39;", "&#x27;")
@@ -161,6 +171,15 @@ def test_a_resumed_run_keeps_the_background_its_first_round_decided(simulated, t
     assert "measured again" not in caplog.text  # read from the history, not decided again
     assert len(res.history) == 3 and all(h["background"] == 1 for h in res.history)
     assert res.options["background"].startswith("a plane per view")
+
+
+def test_input_notes_must_be_strings_and_a_bad_one_writes_nothing(simulated, tmp_path):
+    proj = np.load(simulated / "projections.npy")
+    scan = load_scan(simulated / "config.toml")
+    for bad in ("read a file", [1, 2]):
+        with pytest.raises(pdvc.InputTypeError, match="input_notes"):
+            pdvc.calibrate(proj, scan.geometry, scan.vol_geom, out_dir=tmp_path / "o", input_notes=bad)
+    assert not (tmp_path / "o").exists()
 
 
 def test_pipeline_bad_input_is_named(simulated):

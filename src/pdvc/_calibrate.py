@@ -6,6 +6,7 @@ import logging
 
 from .calibration import CalibrationResult
 from .calibration import calibrate as _calibrate
+from .errors import InputTypeError
 
 log = logging.getLogger("pdvc")
 
@@ -23,6 +24,7 @@ def calibrate(
     config=None,
     save_initial_volume: bool = True,
     full_resolution_geometry=None,
+    input_notes=(),
     **options,
 ) -> CalibrationResult:
     """Calibrate a scan from its own projections; write the outputs if ``out_dir``.
@@ -50,6 +52,12 @@ def calibrate(
         projections given are a binned copy: the poses found (which do not
         depend on the pixel size) are applied to it and written as
         ``geometry_full_resolution.npy``, for the full-size reconstruction.
+    input_notes : sequence of str
+        What was read and assumed about the data (``Scan.notes`` of
+        :func:`pdvc.load_scan`: the data kind and why, flats, air level, bad
+        pixels, binning, the schedule's scales): with ``out_dir``, written to
+        ``pdvc.log``, ``run.json`` (``inputs``) and the report, so that the
+        output folder says what the calibration assumed.
     **options
         Passed to :func:`pdvc.calibration.calibrate` (recipe, stages, scales,
         max_outer, basis, method, frame, fixed, init, weights, ...).
@@ -58,6 +66,9 @@ def calibrate(
     -------
     CalibrationResult
     """
+    notes = None if isinstance(input_notes, (str, bytes)) else list(input_notes or ())
+    if notes is None or not all(isinstance(n, str) for n in notes):
+        raise InputTypeError(f"input_notes must be a sequence of str (one note per item), got {input_notes!r:.80}")
     if out_dir is None:
         if resume:
             raise ValueError("resume=True needs out_dir (the folder of the interrupted run)")
@@ -79,13 +90,15 @@ def calibrate(
     if root.getEffectiveLevel() > logging.INFO:
         root.setLevel(logging.INFO)
     try:
+        for note in notes:
+            log.info("input: %s", note)
         state = writer.load_checkpoint() if resume else None
         if resume and state is None:
             log.warning("no checkpoint in %s: starting from the beginning", writer.out)
         res = _calibrate(projections, geom, vol_geom, checkpoint=writer.save_checkpoint, resume=state, **options)
         writer.write(
             res, projections=projections, config=config, save_initial_volume=save_initial_volume,
-            full_resolution_geometry=full_resolution_geometry,
+            full_resolution_geometry=full_resolution_geometry, input_notes=notes,
         )
     finally:
         root.removeHandler(handler)

@@ -145,6 +145,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         config=cfg,
         save_initial_volume=cfg.output.save_initial_volume,
         full_resolution_geometry=scan.geometry_unbinned,
+        input_notes=scan.notes,
         progress=_Progress(quiet=args.quiet),
         weights=scan.weights,
         scheduler=cfg.compute.scheduler,

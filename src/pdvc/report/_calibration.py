@@ -27,8 +27,11 @@ def detector_displacements(nominal, calibrated, vol_geom):
     return d[:, 0, :], d[:, 1, :], d[:, 2, :]
 
 
-def build_report(out, result, *, projections, angles, params_lab):
-    """The HTML report of a CalibrationResult: what was kept, measured at the geometry returned."""
+def build_report(out, result, *, projections, angles, params_lab, inputs=()):
+    """The HTML report of a CalibrationResult: what was kept, measured at the geometry returned.
+
+    ``inputs``: what was read and assumed about the data (``Scan.notes``), listed after the summary.
+    """
     from . import (
         axis_trajectory_figure,
         pose_figure,
@@ -124,4 +127,5 @@ def build_report(out, result, *, projections, angles, params_lab):
         notes.extend(result.motion.describe())
     if asm is not None:
         notes.extend(asm.observability.describe())
-    return write_report(out, title="pdvc calibration report", summary=summary, figures=figs, tables=tables, notes=notes)
+    return write_report(out, title="pdvc calibration report", summary=summary, figures=figs, tables=tables, notes=notes,
+                        inputs=tuple(inputs))

@@ -105,6 +105,7 @@ def write_report(
     notes: Sequence[str] = (),
     captions: Mapping[str, str] | None = None,
     dpi: int = REPORT_DPI,
+    inputs: Sequence[str] = (),
 ) -> Path:
     """Save the figures as PNG files and write ``report.html`` beside them.
 
@@ -136,6 +137,11 @@ def write_report(
         Caption of a figure or table, by name.
     dpi : int
         Resolution of the PNG files.
+    inputs : sequence of str
+        What was read and assumed about the input data (the data kind and
+        why, flats, air level, bad pixels, binning...: ``Scan.notes`` of
+        :func:`pdvc.load_scan`), listed after the summary under the heading
+        "Inputs".
 
     Returns
     -------
@@ -199,6 +205,13 @@ def write_report(
         "<h2>Summary</h2>",
         _table_html(("quantity", "value"), [(k, v) for k, v in summary.items()]),
     ]
+    if inputs:
+        parts.append('<section id="inputs">')
+        parts.append("<h2>Inputs: what was read and assumed</h2>")
+        parts.append('<ul class="notes">')
+        parts.extend(f"<li>{esc(str(n))}</li>" for n in inputs)
+        parts.append("</ul>")
+        parts.append("</section>")
     for name in order:
         parts.append(f'<section id="{esc(name)}">')
         parts.append(f"<h2>{esc(name.replace('_', ' '))}</h2>")

@@ -3,7 +3,7 @@
 Layout (every file written atomically: a reader, or a run interrupted with
 Ctrl-C, never sees a half-written file)::
 
-    run.json               status ("running" / "complete"), pdvc version, times, gauge
+    run.json               status ("running" / "complete"), pdvc version, times, gauge, what was assumed of the inputs
     checkpoint.npz         poses + history after every outer iteration (for --resume)
     geometry.npy           calibrated per-view vectors (n_views, 12), DESIGN.md convention
     geometry_nominal.npy   the nominal ones
@@ -208,11 +208,14 @@ class OutputWriter:
             )
 
     # -- final outputs ---------------------------------------------------------
-    def write(self, result, *, projections, config=None, save_initial_volume=True, full_resolution_geometry=None) -> None:
+    def write(self, result, *, projections, config=None, save_initial_volume=True, full_resolution_geometry=None,
+              input_notes=()) -> None:
         """Every output of ``result`` (a CalibrationResult); ``run.json`` last, with the status.
 
         ``full_resolution_geometry``: the nominal geometry of the unbinned
         detector; the poses applied to it go to ``geometry_full_resolution.npy``.
+        ``input_notes``: what was read and assumed about the data
+        (``Scan.notes``), in the report and in ``run.json`` (``inputs``).
         """
         from ._tables import write_motion_csv, write_result_h5
 
@@ -256,7 +259,7 @@ class OutputWriter:
         from ._calibration import build_report
 
         if want("report"):
-            build_report(out, result, projections=projections, angles=angles, params_lab=params_lab)
+            build_report(out, result, projections=projections, angles=angles, params_lab=params_lab, inputs=input_notes)
         status = Status(result.status)
         self._run_file(
             "complete",
@@ -271,6 +274,7 @@ class OutputWriter:
             elapsed_s=round(result.elapsed_s, 2),
             snr_before_db=float(np.mean(result.snr_before)),
             snr_after_db=float(np.mean(result.snr_after)),
+            inputs=[str(n) for n in input_notes],
         )
         log.info("outputs written to %s", out)
 
