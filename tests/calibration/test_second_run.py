@@ -68,7 +68,7 @@ def test_the_geometry_whose_reconstruction_predicts_better_is_returned(case, mon
     seen = []
 
     def misfit(p, vg, geometries, **kw):
-        seen.append((len(geometries), kw.get("scale"), kw.get("weights"), kw.get("subsets")))
+        seen.append((len(geometries), kw.get("scale"), kw.get("weights"), kw.get("subsets"), kw.get("background")))
         return np.array(misfits, float)
 
     calls = []
@@ -87,14 +87,30 @@ def test_the_geometry_whose_reconstruction_predicts_better_is_returned(case, mon
     assert np.array_equal(p, before)
     # the precession recipe, on the data as the first run treated them, its own run (no checkpoints, no third run)
     assert calls == [dict(recipe="precession", rings="off", zingers="off", second_run="off", checkpoint=None, jolts=False)]
-    # one comparison of the two geometries, at the default's coarsest scale, by ordered subsets of >= 30 views
-    assert seen == [(2, 1, None, 1)]
+    # one comparison of the two geometries, at the default's coarsest scale, by ordered subsets of >= 30 views, the
+    # residual as it is (the clean scan fitted no background per view)
+    assert seen == [(2, 1, None, 1, None)]
     assert res.options["recipe"] == ("precession" if taken else "default")
     assert ("precession recipe's geometry is returned" in res.options["second_run"]) is taken
     assert res.options["second_run"] in res.options["model"]
     assert {"second run (precession recipe)", "second run (comparison)"} <= set(res.timings)
     if taken:
         assert res.timings["first run (default recipe)"] > 0
+
+
+def test_the_comparison_takes_out_the_background_per_view_the_default_run_fitted(case, monkeypatch):
+    # an air level drifting over the scan (air = "off", so that it is left to the background per view): the default
+    # run fits a plane per view with the motion, and the comparison of the finished calibrations takes the plane of
+    # each predicted view out too (docs/method.md §5.25)
+    seen = []
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
+    monkeypatch.setattr(_select, "cross_validated_misfit",
+                        lambda p, vg, gs, **kw: seen.append(kw.get("background")) or np.ones(len(gs)))
+    g, vg = case.scan.geometry, case.vol_geom
+    p = case.scan.projections + np.linspace(0.0, 0.3, g.n_views, dtype=np.float32)[:, None, None]
+    res = pdvc.calibrate(p, g, vg, max_outer=2, jolts=False, rings="off", zingers="off", air="off", second_run="auto")
+    assert res.options["background"].startswith("a plane per view")
+    assert seen == [1]
 
 
 @pytest.mark.parametrize("first, second, runs, taken", [

@@ -664,9 +664,13 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
             # a second opinion that fails loses nothing the first run found
             return None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
 
+    # the background per view the default run fitted with the motion (an air level that drifts) is taken out of the
+    # predicted views as well: it is the data's, not either geometry's (docs/method.md §5.25)
+    background = drv.background if isinstance(drv.background, int) else None
+
     def misfit(geometries):
         # each volume by ordered subsets, as the calibration's own (the verdicts of the plain iteration within 0.01 %)
-        return cross_validated_misfit(p, vol_geom, geometries, scale=max(scales), weights=weights,
+        return cross_validated_misfit(p, vol_geom, geometries, scale=max(scales), weights=weights, background=background,
                                       subsets=nonneg_subsets(geom.n_views // 2), backend=given.get("backend", "auto"))
 
     def failed(text, t_run, why):
