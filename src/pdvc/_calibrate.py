@@ -54,7 +54,7 @@ def calibrate(
         ``geometry_full_resolution.npy``, for the full-size reconstruction.
     input_notes : sequence of str
         What was read and assumed about the data (``Scan.notes`` of
-        :func:`pdvc.load_scan`: the data kind and why, flats, air level, bad
+        :func:`pdvc._inputs.load_scan`: the data kind and why, flats, air level, bad
         pixels, binning, the schedule's scales): with ``out_dir``, written to
         ``pdvc.log``, ``run.json`` (``inputs``) and the report, so that the
         output folder says what the calibration assumed.

@@ -323,7 +323,8 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
     finer) is made from the other sets at that geometry and re-projected
     onto each set. A motion the reconstruction takes up (a precession once
     per turn against a volume made without it) then counts too. Measured
-    in ``docs/method.md`` §5.12; not used by :func:`pdvc.calibrate`.
+    in ``docs/method.md`` §5.12; :func:`pdvc.calibrate`'s ``second_run``
+    compares its two recipes' geometries with it (§5.25).
 
     Parameters
     ----------

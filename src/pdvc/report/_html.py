@@ -140,7 +140,7 @@ def write_report(
     inputs : sequence of str
         What was read and assumed about the input data (the data kind and
         why, flats, air level, bad pixels, binning...: ``Scan.notes`` of
-        :func:`pdvc.load_scan`), listed after the summary under the heading
+        :func:`pdvc._inputs.load_scan`), listed after the summary under the heading
         "Inputs".
 
     Returns
