@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from pdvc.calibration import cross_validated_misfit
-from pdvc.calibration._select import _without_background
-from pdvc.correlation._background import background_basis
+from pdvc.correlation._background import background_basis, without_background
 from pdvc.errors import InputTypeError, ShapeError
 from pdvc.geometry import fix_gauge
 from pdvc.simulate import tilted_axis_poses
@@ -50,13 +49,15 @@ def test_the_background_taken_out_of_each_view_is_its_weighted_least_squares_pla
     planes = (rng.normal(size=(5, 3)) @ phi).reshape(shape)
     w = np.ones(shape[1:])
     w[:, :2] = 0.0
-    out = _without_background(noise + planes, phi, w)
-    assert np.allclose(out, _without_background(noise, phi, w), atol=1e-12)
+    out = without_background(noise + planes, 1, w)
+    assert np.allclose(out, without_background(noise, 1, w), atol=1e-12)
     assert np.allclose((out.reshape(5, -1) * w.reshape(-1)) @ phi.T, 0.0, atol=1e-12)  # orthogonal to the planes
     # a pixel of weight 0 changes nothing
     bumped = noise.copy()
     bumped[:, :, 0] += 100.0
-    assert np.allclose(_without_background(bumped, phi, w)[:, :, 2:], out[:, :, 2:], atol=1e-9)
+    assert np.allclose(without_background(bumped, 1, w)[:, :, 2:], out[:, :, 2:], atol=1e-9)
+    # no weights: every pixel counts, and a plane alone is taken out entirely
+    assert np.allclose(without_background(planes, 1), 0.0, atol=1e-12)
 
 
 def test_an_air_level_that_drifts_is_not_counted_against_a_geometry(case):

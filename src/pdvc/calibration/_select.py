@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from ..correlation import coarse_grain, coarse_weights, correlate, make_basis
-from ..correlation._background import BACKGROUND_DEGREES, background_basis
+from ..correlation._background import BACKGROUND_DEGREES, without_background
 from ..correlation._engine import _problem
 from ..correlation._frames import lab_to_sample_map, params_to_lab, params_to_sample
 from ..errors import InputTypeError, ShapeError
@@ -380,7 +380,6 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
         raise InputTypeError(f"background must be None or a polynomial degree in {BACKGROUND_DEGREES}, got {background!r}")
     p_s = coarse_grain(projections, geoms[0], s)[0]  # the data's coarse-graining does not depend on the geometry
     w = None if weights is None else coarse_weights(np.broadcast_to(np.asarray(weights, np.float32), shape), s, p_s.shape[1:])
-    phi = None if background is None else background_basis(p_s.shape[1:], int(background)).reshape(-1, p_s[0].size)
     vg = vol_geom.binned(s) if s > 1 else vol_geom
     fine = refined_grid(vg, k)
     idx = np.arange(shape[0])
@@ -394,23 +393,11 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
                             subsets=n_sub, backend=backend)
             d = (forward(vol, fine, g_s[test], backend=backend) - p_s[test]).astype(np.float64)
             wt = 1.0 if w is None else w[test]
-            if phi is not None:
-                d = _without_background(d, phi, wt)
+            if background is not None:
+                d = without_background(d, int(background), wt)
             rss += float(np.sum(wt * d * d))
             energy += float(np.sum(wt * p_s[test].astype(np.float64) ** 2))
         out[i] = rss / max(energy, 1e-300)
         log.info("cross-validated misfit of geometry %d: %.6g (%d sets of views, scale %d)", i, out[i], n_sets, s)
     return out
 
-
-def _without_background(d: np.ndarray, phi: np.ndarray, weights) -> np.ndarray:
-    """``d`` (views, rows, cols) less, view by view, its weighted least-squares fit on the rows of ``phi`` (K, pixels)."""
-    n = d.shape[0]
-    flat = d.reshape(n, -1)
-    w = np.broadcast_to(np.asarray(weights, np.float64), d.shape).reshape(n, -1)
-    out = np.empty_like(flat)
-    for k in range(n):
-        pw = phi * w[k]
-        c = np.linalg.lstsq(pw @ phi.T, pw @ flat[k], rcond=1e-12)[0]  # singular only where a view has no weight
-        out[k] = flat[k] - c @ phi
-    return out.reshape(d.shape)

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..projectors import ViewReduction, jacobian, reduce_views
 
-__all__ = ["background_basis", "reduce_views_background", "profile_offset", "view_offset", "auto_background",
+__all__ = ["background_basis", "without_background", "reduce_views_background", "profile_offset", "view_offset", "auto_background",
            "BACKGROUND_DEGREES", "AUTO_OFFSET_SIGMA", "AUTO_DEGREE"]
 
 BACKGROUND_DEGREES = (0, 1, 2)
@@ -52,6 +52,23 @@ def background_basis(det_shape, degree: int) -> np.ndarray:
     u = np.linspace(-1.0, 1.0, nc) if nc > 1 else np.zeros(1)
     vv, uu = np.meshgrid(v, u, indexing="ij")
     return np.stack([uu**a * vv**b for d in range(degree + 1) for b in range(d + 1) for a in (d - b,)])
+
+
+def without_background(residual, degree: int, weights=None) -> np.ndarray:
+    """``residual`` (views, rows, cols) less, view by view, the polynomial of ``degree`` in the detector coordinates
+    (:func:`background_basis`) that fits it best by least squares weighted by ``weights`` (broadcastable to it;
+    pixels of weight 0 do not count). Float64."""
+    d = np.asarray(residual, np.float64)
+    n = d.shape[0]
+    phi = background_basis(d.shape[1:], degree).reshape(-1, d[0].size)
+    flat = d.reshape(n, -1)
+    w = np.broadcast_to(np.ones(1) if weights is None else np.asarray(weights, np.float64), d.shape).reshape(n, -1)
+    out = np.empty_like(flat)
+    for k in range(n):
+        pw = phi * w[k]
+        c = np.linalg.lstsq(pw @ phi.T, pw @ flat[k], rcond=1e-12)[0]  # singular only where a view has no weight
+        out[k] = flat[k] - c @ phi
+    return out.reshape(d.shape)
 
 
 def profile_offset(red: ViewReduction) -> ViewReduction:
