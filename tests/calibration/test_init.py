@@ -274,3 +274,40 @@ def test_real_neutron_360_degrees():
     assert est.n_pairs == 230
     assert est.offset_px == pytest.approx(-6.0, abs=0.5)
     assert est.spread_px < 1.0
+
+
+# -- the check of a refused estimate (pdvc.calibrate, init = "auto") -----------------------------
+def _noisy(offset_px, sd, seed=1):
+    geom = _parallel(FULL, rows=4)
+    rng = np.random.default_rng(seed)
+    return geom, (_scan(geom, offset_px) + rng.normal(scale=sd, size=(FULL.size, 4, N_COLS))).astype(np.float32)
+
+
+def test_refused_offset_kept_where_it_predicts_the_views_better():
+    """Noise makes the opposite views correlate weakly: the estimate is refused, yet its offset (6 px true) predicts
+    the views left out of an FBP better than the nominal axis does, so the calibration starts from it."""
+    from pdvc import VolumeGeometry
+    from pdvc.calibration._pipeline import _checked_init
+
+    geom, p = _noisy(6.0, 0.3)
+    with pytest.raises(InitError, match="correlate weakly") as info:
+        estimate_axis_offset(p, geom)
+    est = _checked_init(p, geom, VolumeGeometry((4, N_COLS, N_COLS), voxel_size=PIXEL), 1, info.value)
+    assert est is not None and est.offset_px == pytest.approx(6.0, abs=0.5)
+
+
+def test_refused_offset_dropped_where_the_nominal_axis_predicts_better():
+    """A bright detector column 15 px right of centre steers the weakly correlated opposite views to an offset of
+    about 15 px; the sample is centred, so the nominal axis predicts the views better and no offset is kept."""
+    from pdvc import VolumeGeometry
+    from pdvc.calibration._pipeline import _checked_init
+
+    geom, p = _noisy(0.0, 0.5)
+    p[:, :, N_COLS // 2 + 15] += 4.0
+    with pytest.raises(InitError, match="correlate weakly") as info:
+        estimate_axis_offset(p, geom)
+    wrong = estimate_axis_offset(p, geom, min_correlation=-np.inf, max_spread=np.inf).offset_px
+    assert abs(wrong) > 10  # the estimate the check must refuse
+    before = p.copy()
+    assert _checked_init(p, geom, VolumeGeometry((4, N_COLS, N_COLS), voxel_size=PIXEL), 1, info.value) is None
+    assert np.array_equal(p, before)
