@@ -91,6 +91,10 @@ SIZES = {
     # detectors of 154 x 179 px: two scales whose finest correlation grid (256^3) is above the second run's cap, so the
     # precession recipe runs at scale 2 only (docs/method.md §5.27); about 3 minutes a case on 2 cores
     "medium": dict(n=128, views=(90, 120, 180), cases=6),
+    # detectors of 101 x 118 px (one scale: below 128 columns) and a volume as wide as the field of view, 84 x 118 x
+    # 118, as a config without [volume] makes: the correlation grid (2x) is above the second run's 200^3 cap, which
+    # then runs at scale 2 (docs/method.md §5.28)
+    "narrow": dict(n=84, views=(90, 120, 180), cases=8, width=1.4),
     "full": dict(n=64, views=(90, 180, 360, 720), cases=48),
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
@@ -197,6 +201,7 @@ class Case:
     n_views: int
     motion: str
     params: dict = field(default_factory=dict)  # motion amplitudes (lengths in voxels, angles in degrees)
+    width: float = 1.0  # the volume's width over its height n
 
     @property
     def split(self) -> str:
@@ -242,7 +247,7 @@ def case(seed: int, size: str = "quick") -> Case:
                  cycles=int(rng.choice([1, 2])), phase=r3(rng.uniform(0, 2 * np.pi)),
                  velocity=[r3(x) for x in rng.uniform(-0.8, 0.8, 3)],
                  acceleration=[r3(x) for x in rng.uniform(-0.8, 0.8, 3)])
-    return Case(seed, family, n, i0, cone, n_views, motion, p)
+    return Case(seed, family, n, i0, cone, n_views, motion, p, width=float(sz.get("width", 1.0)))
 
 
 def suite(size: str, split: str, n_cases: int | None, seed0: int, motions=None) -> list:
@@ -411,7 +416,8 @@ def run_case(c: Case) -> dict:
     rv, t = true_poses(c, angles)
     scan = simulate_scan(phantom(c), geom, rotvecs=rv, translations=t, i0=c.i0, seed=c.seed, supersampling=2)
     # --roi: the volume as wide as the field of view (as a user reconstructs a region-of-interest scan)
-    vg = pdvc.VolumeGeometry((c.n, c.n, c.n) if not ROI["radius"] else (c.n, round(1.4 * c.n), round(1.4 * c.n)))
+    w = 1.4 if ROI["radius"] else c.width
+    vg = pdvc.VolumeGeometry((c.n, round(w * c.n), round(w * c.n)))
     pts = sample_points(vg, 5, fraction=0.6)
     truth = geom.apply_poses(*fix_gauge(rv, t, geom, center=vg.offset))
 
@@ -516,7 +522,8 @@ def header(args) -> list:
         f"software: python {platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, "
         f"pdvc {pdvc.__version__} at git {rev}",
         f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}",
-        f"suite: size {args.size} (n={SIZES[args.size]['n']}, views {SIZES[args.size]['views']}), split {args.split}, "
+        f"suite: size {args.size} (n={SIZES[args.size]['n']}, views {SIZES[args.size]['views']}"
+        f"{', volume %g n wide' % SIZES[args.size]['width'] if 'width' in SIZES[args.size] else ''}), split {args.split}, "
         f"seed0 {args.seed0}{'; motions ' + args.motions + ' (--motions)' if args.motions else ''}; "
         f"pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
@@ -639,6 +646,8 @@ def main(argv=None) -> int:
     size.add_argument("--quick", dest="size", action="store_const", const="quick", help="12 cases, n=40, <=180 views")
     size.add_argument("--scales", dest="size", action="store_const", const="scales",
                       help="8 cases, n=92, <=180 views: detectors large enough for two scales (2 -> 1)")
+    size.add_argument("--narrow", dest="size", action="store_const", const="narrow",
+                      help="8 cases, n=84 on a volume 1.4 n wide, a detector of 118 columns (one scale)")
     size.add_argument("--medium", dest="size", action="store_const", const="medium",
                       help="6 cases, n=128, <=180 views: two scales, the finest correlation grid above the second "
                            "run's cap")

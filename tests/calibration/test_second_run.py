@@ -48,11 +48,17 @@ def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_
     two = resolve_stages((160, 128), vol_shape=big.shape)
     assert sorted({s.scale for s in two}) == [1, 2]
     assert _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, two, big) == (True, "")
-    assert _pipeline._second_run_scales(two, big) == ((2,), (1,))  # 128^3 at scale 2; 256^3 at scale 1 left out
-    assert _pipeline._second_run_scales(st, vg) == ((1,), ())
+    assert _pipeline._second_run_scales(two, big, (160, 128)) == ((2,), (1,))  # 128^3 at 2; 256^3 at 1 left out
+    assert _pipeline._second_run_scales(st, vg, full.det_shape) == ((1,), ())
+    # no scale of the default's below the cap: a coarser one (docs/method.md §5.28), the first whose grid is, while
+    # the detector keeps SECOND_RUN_MIN_COLUMNS columns there
     one = resolve_stages((160, 128), vol_shape=big.shape, scales=(1,))
-    assert _pipeline._second_run_scales(one, big) == ((), (1,))
-    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, one, big)
+    assert _pipeline._second_run_scales(one, big, (160, 128)) == ((2,), (1,))
+    huge = pdvc.VolumeGeometry((300, 300, 300))  # 300^3 at scale 2, 150^3 at scale 4
+    assert _pipeline._second_run_scales(resolve_stages((160, 200), vol_shape=huge.shape, scales=(1,)), huge,
+                                        (160, 200)) == ((4,), (1,))
+    assert _pipeline._second_run_scales(one, big, (160, 95)) == ((), (1,))  # 47 columns at scale 2
+    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, one, big)  # 33 columns
     assert not run and "256x256x256" in why and 'recipe = "precession"' in why
 
 

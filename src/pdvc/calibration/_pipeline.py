@@ -523,6 +523,9 @@ SECOND_RUN_TWICE_ROUNDS = 12
 #: ... and it runs at the default's scales whose correlation grid holds at most this many voxels, not at all when none
 #: does (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
 SECOND_RUN_MAX_VOXELS = 200**3
+#: ... where none of the default's scales is below that cap, at a coarser scale than the default's, if the detector has
+#: at least this many columns there (the automatic schedule's coarsest scale keeps 64 or more; docs/method.md §5.28)
+SECOND_RUN_MIN_COLUMNS = 48
 #: ... where the finer scales are above it, the precession recipe runs at the coarser ones only, with this many rounds
 #: (twice the recipe's, as the short scans' coarse scales: its loop creeps along the near-gauge modes, cheaply at a
 #: coarse scale, and no finer scale refines what it leaves; docs/method.md §5.15, §5.27)
@@ -555,7 +558,7 @@ def _second_run_reason(recipe, drv, geom, model, stage_list, vol_geom, roi_scan:
         # field had its 0.042 px geometry replaced by a 0.147 px one that predicted 0.12 % better (docs/method.md §5.26)
         return False, ("the precession recipe was not run as well: on a region-of-interest scan the views left out "
                        "cannot rank two geometries (second_run; docs/method.md §5.26)")
-    if not _second_run_scales(stage_list, vol_geom)[0]:
+    if not _second_run_scales(stage_list, vol_geom, geom.det_shape)[0]:
         grid = _correlation_grid(stage_list, vol_geom, max(st.scale for st in stage_list))
         return False, (f"the precession recipe was not run as well: its coarsest correlation grid, "
                        f"{'x'.join(map(str, grid.shape))}, is above {_voxels(SECOND_RUN_MAX_VOXELS)} voxels (second_run); "
@@ -608,13 +611,26 @@ def _correlation_grid(stage_list, vol_geom, scale):
     return refined_grid(vol_geom.binned(scale) if scale > 1 else vol_geom, k)
 
 
-def _second_run_scales(stage_list, vol_geom) -> tuple:
+def _second_run_scales(stage_list, vol_geom, det_shape) -> tuple:
     """(scales, dropped): the default's scales, coarse to fine, whose correlation grid holds at most
     ``SECOND_RUN_MAX_VOXELS``, and the finer ones left out (the precession recipe's rounds are non-negative
-    least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27)."""
+    least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27).
+
+    Where none does (a single scale on a detector below 128 columns with a volume above 100^3), the coarsest scale
+    above the default's, by octaves, whose grid holds at most that while the detector keeps
+    ``SECOND_RUN_MIN_COLUMNS`` columns at it (docs/method.md §5.28); none if no such scale."""
     scales = sorted({st.scale for st in stage_list}, reverse=True)
     fits = [int(np.prod(_correlation_grid(stage_list, vol_geom, s).shape)) <= SECOND_RUN_MAX_VOXELS for s in scales]
-    return tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
+    kept, dropped = tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
+    if kept:
+        return kept, dropped
+    k = max(st.oversample for st in stage_list if st.scale == scales[0])
+    s = 2 * scales[0]
+    while int(det_shape[1]) // s >= SECOND_RUN_MIN_COLUMNS:
+        if int(np.prod(refined_grid(vol_geom.binned(s), k).shape)) <= SECOND_RUN_MAX_VOXELS:
+            return (s,), dropped
+        s *= 2
+    return (), dropped
 
 
 def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, recipe, rings, given, emit, t_start,
@@ -638,13 +654,14 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
             log.info(why_not)
             res = _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {why_not}"))
         return res
-    scales, dropped = _second_run_scales(stage_list, vol_geom)
+    scales, dropped = _second_run_scales(stage_list, vol_geom, geom.det_shape)
     coarse = ""
     if dropped:
         grid = _correlation_grid(stage_list, vol_geom, max(dropped))
-        coarse = (f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only (the correlation grid "
-                  f"of scale {max(dropped)}, {'x'.join(map(str, grid.shape))}, is above {_voxels(SECOND_RUN_MAX_VOXELS)} "
-                  f"voxels)")
+        coarser = ", coarser than the default's" if scales[0] > max(st.scale for st in stage_list) else ""
+        coarse = (f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only{coarser} (the "
+                  f"correlation grid of scale {max(dropped)}, {'x'.join(map(str, grid.shape))}, is above "
+                  f"{_voxels(SECOND_RUN_MAX_VOXELS)} voxels)")
     log.info("second run: the default kept the %s model; the precession recipe runs as well%s, and the geometry whose "
              "reconstruction predicts the views left out better is kept", drv.model_choice.winner,
              coarse or f" (scales {scales})")
