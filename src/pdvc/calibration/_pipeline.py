@@ -373,7 +373,8 @@ def calibrate(
         the ``precession`` recipe runs as well, at the default's scales
         whose correlation grid holds at most ``SECOND_RUN_MAX_VOXELS`` (on
         a large scan the coarser ones only, with
-        ``SECOND_RUN_COARSE_ROUNDS`` rounds; §5.27), and the geometry whose
+        ``SECOND_RUN_COARSE_ROUNDS`` rounds; §5.27; where none holds that,
+        at a coarser scale than the default's, §5.28), and the geometry whose
         reconstruction predicts the views it was not made from better by
         more than ``SECOND_RUN_GAIN`` (:func:`cross_validated_misfit`) is
         returned; the motion model's note says which and by how much
@@ -520,8 +521,8 @@ SECOND_RUN_TWICE_LOSS = 5e-4
 #: ... that run's rounds per scale (the recipe's 8 and 4 more: its model has 7 functions per free parameter, not 5; a
 #: tuning scan's run reached 8 rounds still moving and stopped at 9 with 12)
 SECOND_RUN_TWICE_ROUNDS = 12
-#: ... and it runs at the default's scales whose correlation grid holds at most this many voxels, not at all when none
-#: does (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
+#: ... and it runs at the default's scales whose correlation grid holds at most this many voxels, at a coarser scale
+#: when none does (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
 SECOND_RUN_MAX_VOXELS = 200**3
 #: ... where none of the default's scales is below that cap, at a coarser scale than the default's, if the detector has
 #: at least this many columns there (the automatic schedule's coarsest scale keeps 64 or more; docs/method.md §5.28)
