@@ -606,9 +606,10 @@ def _voxels(n: int) -> str:
     return f"{e}^3" if e**3 == n else f"{n:.3g}"
 
 
-def _correlation_grid(stage_list, vol_geom, scale):
-    """The grid the stages of ``scale`` correlate on (their oversampling of the binned volume)."""
-    k = max(st.oversample for st in stage_list if st.scale == scale)
+def _correlation_grid(stage_list, vol_geom, scale, like=None):
+    """The grid the stages of ``scale`` correlate on (their oversampling of the binned volume); a scale none of them
+    runs at: with the oversampling of the stages of scale ``like``."""
+    k = max(st.oversample for st in stage_list if st.scale == (scale if like is None else like))
     return refined_grid(vol_geom.binned(scale) if scale > 1 else vol_geom, k)
 
 
@@ -617,18 +618,18 @@ def _second_run_scales(stage_list, vol_geom, det_shape) -> tuple:
     ``SECOND_RUN_MAX_VOXELS``, and the finer ones left out (the precession recipe's rounds are non-negative
     least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27).
 
-    Where none does (a single scale on a detector below 128 columns with a volume above 100^3), the coarsest scale
-    above the default's, by octaves, whose grid holds at most that while the detector keeps
-    ``SECOND_RUN_MIN_COLUMNS`` columns at it (docs/method.md §5.28); none if no such scale."""
+    Where none does (a single scale on a detector below 128 columns with a volume above 100^3), the first scale
+    coarser than the default's, by octaves, whose grid (oversampled as the default's coarsest stages) holds at most
+    that while the detector keeps ``SECOND_RUN_MIN_COLUMNS`` columns at it (docs/method.md §5.28); none if no such
+    scale."""
     scales = sorted({st.scale for st in stage_list}, reverse=True)
     fits = [int(np.prod(_correlation_grid(stage_list, vol_geom, s).shape)) <= SECOND_RUN_MAX_VOXELS for s in scales]
     kept, dropped = tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
     if kept:
         return kept, dropped
-    k = max(st.oversample for st in stage_list if st.scale == scales[0])
     s = 2 * scales[0]
     while int(det_shape[1]) // s >= SECOND_RUN_MIN_COLUMNS:
-        if int(np.prod(refined_grid(vol_geom.binned(s), k).shape)) <= SECOND_RUN_MAX_VOXELS:
+        if int(np.prod(_correlation_grid(stage_list, vol_geom, s, like=scales[0]).shape)) <= SECOND_RUN_MAX_VOXELS:
             return (s,), dropped
         s *= 2
     return (), dropped
@@ -804,7 +805,9 @@ def _checked_init(p, geom, vol_geom, scale: int, exc: Exception):
     it by a tenth of a pixel a round and stop short (a held-out granular scan: 2.31 px nominal, 2.71 px calibrated
     from nominal, 0.27 px from the refused offset of +2.13 px). The refused offset is kept when its FDK/FBP from half
     the views predicts the other half better than the nominal geometry's (:func:`cross_validated_rss`, at the first
-    stage's scale), so that a wrong offset (transmission taken for line integrals, wrong angles) is still refused.
+    stage's scale), so that an offset that is wrong for a reason of its own (a bright detector column steering the
+    pairs, ``tests/calibration/test_init.py``) is still refused. The estimate is made again without its two gates
+    (refusal path only: a few FFT correlations).
     """
     from ._init import InitError, estimate_axis_offset, offset_poses
 
