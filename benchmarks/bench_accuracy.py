@@ -95,6 +95,10 @@ SIZES = {
     # 118, as a config without [volume] makes: the correlation grid (2x) is above the second run's 200^3 cap, which
     # then runs at scale 2 (docs/method.md §5.28)
     "narrow": dict(n=84, views=(90, 120, 180), cases=8, width=1.4),
+    # detectors of 125 x 146 px (two scales, 2 -> 1) and a volume as wide as the field of view, 104 x 146 x 146: the
+    # finest grid at 2x (208 x 292 x 292) is above the 256^3 cap, which a coarser schedule cannot keep (73 columns at
+    # scale 2), so the finest scale correlates at 1x (docs/method.md §5.29)
+    "capped": dict(n=104, views=(90, 120, 180), cases=8, width=1.4),
     "full": dict(n=64, views=(90, 180, 360, 720), cases=48),
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
@@ -648,6 +652,9 @@ def main(argv=None) -> int:
                       help="8 cases, n=92, <=180 views: detectors large enough for two scales (2 -> 1)")
     size.add_argument("--narrow", dest="size", action="store_const", const="narrow",
                       help="8 cases, n=84 on a volume 1.4 n wide, a detector of 118 columns (one scale)")
+    size.add_argument("--capped", dest="size", action="store_const", const="capped",
+                      help="8 cases, n=104 on a volume 1.4 n wide, a detector of 146 columns (two scales; the finest "
+                           "at 2x above the 256^3 cap)")
     size.add_argument("--medium", dest="size", action="store_const", const="medium",
                       help="6 cases, n=128, <=180 views: two scales, the finest correlation grid above the second "
                            "run's cap")

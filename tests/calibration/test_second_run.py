@@ -50,6 +50,12 @@ def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_
     assert _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, two, big) == (True, "")
     assert _pipeline._second_run_scales(two, big, (160, 128)) == ((2,), (1,))  # 128^3 at 2; 256^3 at 1 left out
     assert _pipeline._second_run_scales(st, vg, full.det_shape) == ((1,), ())
+    # a finest scale whose oversampling the 256^3 cap lowered (docs/method.md §5.29) is judged as the precession
+    # recipe would correlate there, at the coarsest stages' 2x: 268 x 320 x 320, left out
+    tall = pdvc.VolumeGeometry((134, 160, 160))
+    capped = resolve_stages((134, 160), vol_shape=tall.shape)
+    assert [s.oversample for s in capped if s.scale == 1] == [1, 1]
+    assert _pipeline._second_run_scales(capped, tall, (134, 160)) == ((2,), (1,))
     # no scale of the default's below the cap: a coarser one (docs/method.md §5.28), the first whose grid is, while
     # the detector keeps SECOND_RUN_MIN_COLUMNS columns there
     one = resolve_stages((160, 128), vol_shape=big.shape, scales=(1,))

@@ -21,6 +21,7 @@ from pdvc.calibration import (
     Stage,
     StageError,
     auto_scales,
+    capped_oversample,
     recipe_stages,
     refine_stage,
     run_stages,
@@ -143,6 +144,27 @@ def test_auto_scales_cap_the_correlation_grid_of_the_finest_scale():
     assert auto_scales((48, 56), (400, 400, 400)) == (1,)
     # explicit scales are never changed
     assert [s.scale for s in recipe_stages("default", (256, 384), vol_shape=(256,) * 3, scales=(2, 1))][-1] == 1
+
+
+def test_the_finest_scale_refines_less_where_a_coarser_schedule_cannot_keep_the_cap():
+    # a 134 x 160 detector under a 134 x 160 x 160 volume: scale 4 would leave 40 columns, so the schedule stays 2 -> 1,
+    # and scale 1 at 2x would correlate on 268 x 320 x 320 (27.4M voxels, above 256^3): it correlates at 1x
+    assert auto_scales((134, 160), (134, 160, 160)) == (2, 1)
+    st = recipe_stages("default", (134, 160), vol_shape=(134, 160, 160))
+    assert [(s.name, s.scale, s.oversample) for s in st] == [("warmup", 2, 2), ("model", 2, 2), ("model", 1, 1),
+                                                             ("jolts", 1, 1)]
+    assert capped_oversample((134, 160, 160), 1, 2) == 1 and capped_oversample((134, 160, 160), 2, 2) == 2
+    assert capped_oversample((100, 100, 100), 1, 3) == 2  # 300^3 above the cap, 200^3 below
+    assert capped_oversample((400, 400, 400), 1, 2) == 1  # never below 1, even above the cap
+    # exactly at the cap (the 128^3 benchmark scan): unchanged
+    assert {s.oversample for s in recipe_stages("default", (128, 160), vol_shape=(128, 128, 128))} == {2}
+    # the user's oversample, explicit scales, and no grid given: unchanged
+    assert {s.oversample for s in recipe_stages("default", (134, 160), vol_shape=(134, 160, 160), oversample=2)} == {2}
+    assert {s.oversample for s in recipe_stages("default", (134, 160), vol_shape=(134, 160, 160), scales=(2, 1))} == {2}
+    assert {s.oversample for s in recipe_stages("default", (134, 160))} == {2}
+    # the short-scan schedule (nonneg_ls: coarse rounds, one refining round at the finest scale) too
+    short = recipe_stages("default", (134, 160), vol_shape=(134, 160, 160), reconstruct="nonneg_ls")
+    assert [(s.scale, s.oversample, s.rounds) for s in short][-2:] == [(1, 1, 1), (1, 1, 5)]
 
 
 def test_recipes_differ_in_their_model_and_take_overrides():

@@ -616,14 +616,17 @@ def _correlation_grid(stage_list, vol_geom, scale, like=None):
 def _second_run_scales(stage_list, vol_geom, det_shape) -> tuple:
     """(scales, dropped): the default's scales, coarse to fine, whose correlation grid holds at most
     ``SECOND_RUN_MAX_VOXELS``, and the finer ones left out (the precession recipe's rounds are non-negative
-    least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27).
+    least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27). Every grid is
+    oversampled as the default's coarsest stages, as the precession recipe's stages at the scales it is given are
+    (not as a finest scale whose oversampling the 256^3 cap lowered: ``capped_oversample``, §5.29).
 
     Where none does (a single scale on a detector below 128 columns with a volume above 100^3), the first scale
     coarser than the default's, by octaves, whose grid (oversampled as the default's coarsest stages) holds at most
     that while the detector keeps ``SECOND_RUN_MIN_COLUMNS`` columns at it (docs/method.md §5.28); none if no such
     scale."""
     scales = sorted({st.scale for st in stage_list}, reverse=True)
-    fits = [int(np.prod(_correlation_grid(stage_list, vol_geom, s).shape)) <= SECOND_RUN_MAX_VOXELS for s in scales]
+    fits = [int(np.prod(_correlation_grid(stage_list, vol_geom, s, like=scales[0]).shape)) <= SECOND_RUN_MAX_VOXELS
+            for s in scales]
     kept, dropped = tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
     if kept:
         return kept, dropped
@@ -659,7 +662,7 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     scales, dropped = _second_run_scales(stage_list, vol_geom, geom.det_shape)
     coarse = ""
     if dropped:
-        grid = _correlation_grid(stage_list, vol_geom, max(dropped))
+        grid = _correlation_grid(stage_list, vol_geom, max(dropped), like=max(st.scale for st in stage_list))
         coarser = ", coarser than the default's" if scales[0] > max(st.scale for st in stage_list) else ""
         coarse = (f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only{coarser} (the "
                   f"correlation grid of scale {max(dropped)}, {'x'.join(map(str, grid.shape))}, is above "

@@ -37,6 +37,7 @@ __all__ = [
     "refine_stage",
     "JOLT_BASIS",
     "auto_scales",
+    "capped_oversample",
     "stages_to_dicts",
     "stages_from_dicts",
 ]
@@ -341,6 +342,25 @@ def auto_scales(det_shape, vol_shape=None, oversample: int = 2) -> tuple:
     return sched
 
 
+def capped_oversample(vol_shape, scale: int, oversample: int) -> int:
+    """The oversampling at ``scale``, at most ``oversample``, whose correlation grid stays within ``MAX_CORRELATION_VOXELS``.
+
+    :func:`auto_scales` keeps the cap by moving the schedule an octave
+    coarser, but not below 64 px at its first scale: a detector of 128-255
+    columns under a volume above 128³ voxels (a 134 x 160 detector and a
+    134 x 160 x 160 volume, as a config without ``[volume]`` makes) keeps
+    scales 2 -> 1, whose finest grid at 2x would be 268 x 320 x 320. There
+    the finest scale correlates on a less refined grid instead (at 1x, the
+    voxels of the coarser scale's 2x grid; ``docs/method.md`` §5.29). Never
+    below 1.
+    """
+    voxels = float(np.prod(vol_shape))
+    k = int(oversample)
+    while k > 1 and voxels * (k / scale) ** 3 > MAX_CORRELATION_VOXELS:
+        k -= 1
+    return k
+
+
 # diverge_tol of the model stage at the scales after the first (the finest scales refine)
 FINER_SCALE_DIVERGE_TOL = 0.0
 
@@ -386,7 +406,9 @@ def recipe_stages(
         Needed for ``scales="auto"`` (:func:`auto_scales`).
     vol_shape : (nz, ny, nx), optional
         The user's grid: ``scales="auto"`` then caps the finest scale's
-        correlation grid (:func:`auto_scales`).
+        correlation grid (:func:`auto_scales`; where a coarser schedule
+        cannot, by that scale's oversampling, :func:`capped_oversample`,
+        unless ``oversample`` is given).
     scales : "auto" or sequence of int
         A model stage per scale, coarse to fine (the first scale also a warm-up).
     max_outer : int, optional
@@ -448,12 +470,19 @@ def recipe_stages(
         spec["candidates"] = DEFAULT_CANDIDATES  # the model is chosen from the data unless the user chose it
     spec.update({k: v for k, v in model.items() if v is not None})
     base = Stage(name="model", rounds=1, **spec)
+    over = {}  # scale -> oversampling, where the automatic schedule's cap takes less than the model's
     if sched is None:
         sched, plain = auto_scales(det_shape, vol_shape, base.oversample), auto_scales(det_shape)
         if sched != plain:
             edge = round((float(np.prod(vol_shape)) * (base.oversample / plain[-1]) ** 3) ** (1 / 3))
             log.info("scales %s: the finest scale's correlation grid is capped at %d^3 voxels (scales %s would correlate "
                      "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), plain, edge)
+        if vol_shape is not None and model.get("oversample") is None:
+            over = {s: k for s in sched if (k := capped_oversample(vol_shape, s, base.oversample)) != base.oversample}
+            for s, k in over.items():
+                log.info("scales %s: scale %d correlates on a grid refined %dx instead of %dx, within the %d^3-voxel cap "
+                         "(a coarser schedule would leave the detector below 64 px); set oversample to choose", sched, s,
+                         k, base.oversample, round(MAX_CORRELATION_VOXELS ** (1 / 3)))
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     finer = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
@@ -463,17 +492,20 @@ def recipe_stages(
     nonneg = isinstance(base.reconstruct, str) and base.reconstruct == "nonneg_ls"
     if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None:
         rounds = [NONNEG_COARSE_ROUNDS * n_outer] * (len(sched) - 1) + [NONNEG_FINE_ROUNDS]
+    def at(s: int) -> Stage:  # the model stage at scale s, its oversampling capped there
+        return base.replace(oversample=over[s]) if s in over else base
+
     stages = []
     for j, s in enumerate(sched):
         # translations first at the first scale only: a finer scale starts from poses the coarser one measured
         n_warm = min(warmup, rounds[j] - 1) if base.frees_rotation and j == 0 else 0
         if n_warm:
-            stages.append(warmup_stage(base, scale=s, rounds=n_warm, basis=warmup_basis))
+            stages.append(warmup_stage(at(s), scale=s, rounds=n_warm, basis=warmup_basis))
         fine = dict(until="rounds") if rounds[j] < n_outer else {}  # a refinement: its rounds, not a convergence
-        stages.append(base.replace(scale=s, rounds=rounds[j] - n_warm, **(finer if j > 0 else {}), **fine))
+        stages.append(at(s).replace(scale=s, rounds=rounds[j] - n_warm, **(finer if j > 0 else {}), **fine))
     last = stages[-1]  # the jolts are looked for at the finest scale, on the smooth model's own volumes
     if recipe == "default" and refine and spec.get("candidates") and model.get("reconstruct") is None:
-        stages.append(refine_stage(base, scale=sched[0]))
+        stages.append(refine_stage(at(sched[0]), scale=sched[0]))
     if recipe in ("default", "precession") and jolts:
         stages.append(jolt_stage(last))
     return tuple(stages)
