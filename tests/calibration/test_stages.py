@@ -24,6 +24,7 @@ from pdvc.calibration import (
     capped_oversample,
     recipe_stages,
     refine_stage,
+    resolve_stages,
     run_stages,
     stages_from_dicts,
     stages_to_dicts,
@@ -162,6 +163,14 @@ def test_the_finest_scale_refines_less_where_a_coarser_schedule_cannot_keep_the_
     assert {s.oversample for s in recipe_stages("default", (134, 160), vol_shape=(134, 160, 160), oversample=2)} == {2}
     assert {s.oversample for s in recipe_stages("default", (134, 160), vol_shape=(134, 160, 160), scales=(2, 1))} == {2}
     assert {s.oversample for s in recipe_stages("default", (134, 160))} == {2}
+    # the calibration's notes (the report's "scales" row) say so; not where nothing was capped
+    notes = []
+    resolve_stages((134, 160), vol_shape=(134, 160, 160), notes=notes)
+    assert len(notes) == 1 and notes[0].startswith("scales: scale 1 correlates at 1x instead of 2x") and "27.4M" in notes[0]
+    for kw in (dict(vol_shape=(128, 128, 128)), dict(vol_shape=(134, 160, 160), oversample=2)):
+        quiet = []
+        resolve_stages((134, 160), notes=quiet, **kw)
+        assert quiet == []
     # the short-scan schedule (nonneg_ls: coarse rounds, one refining round at the finest scale) too
     short = recipe_stages("default", (134, 160), vol_shape=(134, 160, 160), reconstruct="nonneg_ls")
     assert [(s.scale, s.oversample, s.rounds) for s in short][-2:] == [(1, 1, 1), (1, 1, 5)]

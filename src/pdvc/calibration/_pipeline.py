@@ -36,7 +36,7 @@ from ._driver import (PosesResult, correlation_volume, data_at_scale, nonneg_sub
                       stage_background)
 from ._outer import gauge_text
 from ._select import with_model
-from ._stages import _RECIPE_ROUNDS, NONNEG_COARSE_ROUNDS, Stage, StageError, recipe_stages
+from ._stages import _RECIPE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS, Stage, StageError, recipe_stages
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -178,6 +178,15 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
                 notes.append(why) if notes is not None else log.info(why)
                 out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=kept, max_outer=max_outer,
                                     warmup=warmup, **model)
+        if isinstance(scales, str) and scales == "auto" and vol_shape is not None and model.get("oversample") is None:
+            top = max(st.oversample for st in out)
+            for s in sorted({st.scale for st in out if st.oversample < top}, reverse=True):
+                k = min(st.oversample for st in out if st.scale == s)
+                why = (f"scales: scale {s} correlates at {k}x instead of {top}x: at {top}x its grid would hold "
+                       f"{float(np.prod(vol_shape)) * (top / s) ** 3 / 1e6:.1f}M voxels, above the "
+                       f"{round(MAX_CORRELATION_VOXELS ** (1 / 3))}^3 cap that a coarser schedule cannot keep (the "
+                       f"detector would fall below 64 px; docs/method.md §5.29); set oversample to choose")
+                notes.append(why) if notes is not None else log.info(why)
         return out
     except StageError as exc:
         raise CalibrationError(str(exc)) from None

@@ -479,8 +479,8 @@ def recipe_stages(
                      "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), plain, edge)
         if vol_shape is not None and model.get("oversample") is None:
             over = {s: k for s in sched if (k := capped_oversample(vol_shape, s, base.oversample)) != base.oversample}
-            for s, k in over.items():
-                log.info("scales %s: scale %d correlates on a grid refined %dx instead of %dx, within the %d^3-voxel cap "
+            for s, k in over.items():  # resolve_stages says so in the calibration's notes
+                log.debug("scales %s: scale %d correlates on a grid refined %dx instead of %dx, within the %d^3-voxel cap "
                          "(a coarser schedule would leave the detector below 64 px); set oversample to choose", sched, s,
                          k, base.oversample, round(MAX_CORRELATION_VOXELS ** (1 / 3)))
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
