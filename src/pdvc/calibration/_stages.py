@@ -481,8 +481,8 @@ def recipe_stages(
             over = {s: k for s in sched if (k := capped_oversample(vol_shape, s, base.oversample)) != base.oversample}
             for s, k in over.items():  # resolve_stages says so in the calibration's notes
                 log.debug("scales %s: scale %d correlates on a grid refined %dx instead of %dx, within the %d^3-voxel cap "
-                         "(a coarser schedule would leave the detector below 64 px); set oversample to choose", sched, s,
-                         k, base.oversample, round(MAX_CORRELATION_VOXELS ** (1 / 3)))
+                          "(a coarser schedule would leave the detector below 64 px); set oversample to choose", sched, s,
+                          k, base.oversample, round(MAX_CORRELATION_VOXELS ** (1 / 3)))
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     finer = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
