@@ -58,6 +58,7 @@ combinations).
     python benchmarks/bench_accuracy.py --quick                 # 12 held-out cases, n=40, <=180 views (~10 min, 2 cores)
     python benchmarks/bench_accuracy.py --scales                # 8 held-out cases, n=92: detectors of 110x129 px, two scales
     python benchmarks/bench_accuracy.py --medium --motions prec1,prec2,combo   # n=128: precessions above the cap
+    python benchmarks/bench_accuracy.py --capped --half-turn    # n=104, 146 columns: the finest scale at 1x (cap)
     python benchmarks/bench_accuracy.py                         # full: 48 held-out cases, n=64, 90..720 views
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
     python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
