@@ -167,6 +167,9 @@ def test_the_finest_scale_refines_less_where_a_coarser_schedule_cannot_keep_the_
     notes = []
     resolve_stages((134, 160), vol_shape=(134, 160, 160), notes=notes)
     assert len(notes) == 1 and notes[0].startswith("scales: scale 1 correlates at 1x instead of 2x") and "27.4M" in notes[0]
+    one = []  # one scale, every stage capped (a detector below 128 columns under a 300^3 volume): said too
+    assert {s.oversample for s in resolve_stages((100, 120), vol_shape=(300, 300, 300), notes=one)} == {1}
+    assert len(one) == 1 and "216.0M" in one[0]
     for kw in (dict(vol_shape=(128, 128, 128)), dict(vol_shape=(134, 160, 160), oversample=2)):
         quiet = []
         resolve_stages((134, 160), notes=quiet, **kw)

@@ -179,7 +179,7 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
                 out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=kept, max_outer=max_outer,
                                     warmup=warmup, **model)
         if isinstance(scales, str) and scales == "auto" and vol_shape is not None and model.get("oversample") is None:
-            top = max(st.oversample for st in out)
+            top = Stage.oversample  # the model's, which recipe_stages lowered where its grid is above the cap
             for s in sorted({st.scale for st in out if st.oversample < top}, reverse=True):
                 k = min(st.oversample for st in out if st.scale == s)
                 why = (f"scales: scale {s} correlates at {k}x instead of {top}x: at {top}x its grid would hold "

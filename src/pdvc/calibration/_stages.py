@@ -477,12 +477,8 @@ def recipe_stages(
             edge = round((float(np.prod(vol_shape)) * (base.oversample / plain[-1]) ** 3) ** (1 / 3))
             log.info("scales %s: the finest scale's correlation grid is capped at %d^3 voxels (scales %s would correlate "
                      "on %d^3); set scales to choose", sched, round(MAX_CORRELATION_VOXELS ** (1 / 3)), plain, edge)
-        if vol_shape is not None and model.get("oversample") is None:
+        if vol_shape is not None and model.get("oversample") is None:  # resolve_stages puts it in the notes
             over = {s: k for s in sched if (k := capped_oversample(vol_shape, s, base.oversample)) != base.oversample}
-            for s, k in over.items():  # resolve_stages says so in the calibration's notes
-                log.debug("scales %s: scale %d correlates on a grid refined %dx instead of %dx, within the %d^3-voxel cap "
-                          "(a coarser schedule would leave the detector below 64 px); set oversample to choose", sched, s,
-                          k, base.oversample, round(MAX_CORRELATION_VOXELS ** (1 / 3)))
     # a finer scale refines what the coarser one measured: it stops at the first fresh reconstruction
     # that fits worse than the best of the stage (docs/method.md, "Stopping"), unless the user set diverge_tol
     finer = {} if model.get("diverge_tol") is not None else dict(diverge_tol=FINER_SCALE_DIVERGE_TOL)
@@ -492,6 +488,7 @@ def recipe_stages(
     nonneg = isinstance(base.reconstruct, str) and base.reconstruct == "nonneg_ls"
     if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None:
         rounds = [NONNEG_COARSE_ROUNDS * n_outer] * (len(sched) - 1) + [NONNEG_FINE_ROUNDS]
+
     def at(s: int) -> Stage:  # the model stage at scale s, its oversampling capped there
         return base.replace(oversample=over[s]) if s in over else base
 
