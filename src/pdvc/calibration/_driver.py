@@ -514,6 +514,7 @@ class _StageRun:
         for r in range(first_round, st.rounds):
             self.t_round = time.perf_counter()
             jumped, jump = jump, None
+            best_before = self.best
             entropy = float("nan")
             if "entropy" in st.guards:
                 entropy, rose = self._entropy_check()
@@ -564,11 +565,19 @@ class _StageRun:
             if inc < st.tol_px:
                 status = Status.CONVERGED if st.until == "converged" else Status.ROUNDS_DONE
                 break
+            if st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc and jumped is not None:
+                # the jump overshot or left the series: back to where it started (and to the best round before it),
+                # and on by plain rounds, which stop where they would have without it (one round spent)
+                log.info("round %d: the round from the extrapolated poses moved %.3g px, not less than the %.3g px "
+                         "before the jump; undone, no more jumps in this stage", r, inc, prev_inc)
+                self.poses, self.kept = jumped
+                self.best = best_before
+                may_jump, prev_step = False, None
+                continue
             if st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc:
                 log.info("round %d: increment %.3g px did not contract (previous %.3g px); stopping", r, inc, prev_inc)
                 status = Status.STOPPED_CONTRACTING
-                # the poses before this round; a jump's round goes back to where the jump started
-                self.poses, self.kept = (prev_poses, prev_kept) if jumped is None else jumped
+                self.poses, self.kept = prev_poses, prev_kept  # the poses before this round
                 break
             if may_jump and prev_step is not None and r < st.rounds - 1:
                 target, cos = self._extrapolated(prev_poses, new, inc / prev_inc, step, prev_step)

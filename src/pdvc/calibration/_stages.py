@@ -140,10 +140,11 @@ class Stage:
         ``EXTRAPOLATE_MAX`` steps on; constants of
         ``pdvc.calibration._driver``). A jump whose fresh reconstruction
         fits the data worse than the stage's best round is undone, and no
-        other is tried in the stage; the round after a jump must contract
-        (the stall rule) or the stage ends where the jump started. Off by
-        default: it reaches the loop's own fixed point sooner, which is not
-        always nearer the truth (``docs/method.md`` §5.6).
+        other is tried in the stage; so is one whose round does not contract
+        on the round before the jump (the stall rule), and the stage goes on
+        by plain rounds from where the jump started. Off by default: it
+        reaches the loop's own fixed point sooner, which is not always
+        nearer the truth (``docs/method.md`` §5.6, §5.15).
     candidates : tuple of str
         Named motion models (:data:`pdvc.calibration.MODELS`:
         ``"fixed_axis"``, ``"axis"``, ``"precession"``) compared with the
