@@ -43,7 +43,10 @@ scan), then times ``pdvc.calibrate``.  Printed per size:
   (no file is changed): reconstructions of the correlation volume,
   Jacobian passes (``reduce_views``), dense solves (``_eig_solve`` and
   ``_assemble``), and coarse-graining, attributed to the step they ran in;
-* each round (stage, scale, seconds, passes, χ before -> after, increment);
+* each round (stage, scale, seconds, passes, χ before -> after, increment,
+  and the gauge-free error against the truth of the poses it kept, read
+  from ``calibrate(checkpoint=)``; "-" for rounds of a run whose
+  checkpoints are not handed out, e.g. a second run's);
 * peak memory: the process's peak resident set size (``getrusage``
   ``ru_maxrss``) of the calibrating process, and its value before
   ``calibrate`` (imports, warm-up, projections loaded);
@@ -62,6 +65,13 @@ scan), then times ``pdvc.calibrate``.  Printed per size:
     python benchmarks/bench_calibrate.py --standard               # small, medium, standard (long)
     python benchmarks/bench_calibrate.py --sizes standard --keep-data /tmp/pdvc_bench   # reuse the simulated scan
     python benchmarks/bench_calibrate.py --sizes medium --precession 0.5   # a precessing axis
+    python benchmarks/bench_calibrate.py --sizes parallel --start tilt     # from the true tilted axis (a diagnostic)
+
+``--start tilt`` starts the calibration (``initial_poses``) from the true
+tilted, offset axis without the drift, ``--start roll`` from its tilt in the
+detector plane alone (and the offset): a diagnostic of which mode the rounds
+spend their time on (``docs/method.md`` §5.15), not a calibration a user
+could run.
 """
 
 from __future__ import annotations
@@ -84,6 +94,11 @@ SIZES = {
     "standard": (256, 360, (256, 384), 1000.0, 500.0, 300.0),
     "parallel": (160, 91, (134, 160), None, None, 30.0),
 }
+# the axis of every size: tilted by TILT_DEG toward the azimuth TILT_AZIMUTH (pdvc.simulate.tilted_axis_poses: radians
+# from the detector's u at the first view toward +y, away from the source; 0.38 deg in the detector plane and 0.32 deg
+# along the beam, a pitch), offset by 0.04 n
+TILT_DEG = 0.5
+TILT_AZIMUTH = 0.7
 
 
 def _describe(name: str) -> str:
@@ -117,12 +132,28 @@ def _problem(name: str):
         geom = pdvc.circular_cone(angles, sod=sod, odd=odd, det_shape=det, pixel=1.5)
     phantom = cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=3 * n, seed=SEED)
     rv, t = combine_poses(
-        tilted_axis_poses(angles, tilt=np.deg2rad(0.5), tilt_azimuth=0.7, offset=(0.04 * n, 0.0, 0.0)),
+        tilted_axis_poses(angles, tilt=np.deg2rad(TILT_DEG), tilt_azimuth=TILT_AZIMUTH, offset=(0.04 * n, 0.0, 0.0)),
         drift_poses(np.linspace(0.0, 1.0, nv), angles, velocity=(0.02 * n, 0.0, 0.015 * n)),
     )
     if _precession_deg():
         rv, t = combine_poses((rv, t), precession_poses(angles, amplitude=np.deg2rad(_precession_deg())))
     return geom, vg, phantom, rv, t
+
+
+def _start_poses(name: str, start: str):
+    """``--start``: None (nominal), or the true axis without the drift (``tilt``), or its tilt in the detector plane
+    (azimuth 0, ``tilt · cos(azimuth)``) and offset (``roll``)."""
+    import numpy as np
+
+    import pdvc
+    from pdvc.simulate import tilted_axis_poses
+
+    if start == "nominal":
+        return None
+    n, nv, _, sod, _, _ = SIZES[name]
+    angles = np.linspace(0, np.pi if sod is None else 2 * np.pi, nv, endpoint=False)
+    tilt, az = (TILT_DEG, TILT_AZIMUTH) if start == "tilt" else (TILT_DEG * np.cos(TILT_AZIMUTH), 0.0)
+    return pdvc.Poses(*tilted_axis_poses(angles, tilt=np.deg2rad(tilt), tilt_azimuth=az, offset=(0.04 * n, 0.0, 0.0)))
 
 
 def _precession_deg() -> float:
@@ -278,7 +309,7 @@ def _reference_problem(threads):
     return Yardstick(vol, vg, geom, ref_views=0)
 
 
-def child_calibrate(name: str, path: str, threads: int) -> int:
+def child_calibrate(name: str, path: str, threads: int, start: str = "nominal") -> int:
     import numpy as np
 
     import pdvc
@@ -291,9 +322,16 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
     rss_before = _rss_mib()
 
     ref = [yard() for _ in range(3)]
+    kept = {}  # (stage index, round, chi_before) -> the poses that round kept, from the checkpoints
+
+    def checkpoint(state):
+        h = state["history"][-1]
+        kept[(h["stage_index"], h["round"], h["chi_before"])] = state["poses"]
+
+    initial = _start_poses(name, start)
     probe = _install_probe()
     t0 = time.perf_counter()
-    res = pdvc.calibrate(projections, geom, vg, progress=probe.progress)
+    res = pdvc.calibrate(projections, geom, vg, progress=probe.progress, checkpoint=checkpoint, initial_poses=initial)
     total = time.perf_counter() - t0
     probe.restore()
     rss_peak = _rss_mib()
@@ -358,10 +396,13 @@ def child_calibrate(name: str, path: str, threads: int) -> int:
         print(f"  (probe: not found, not timed: {', '.join(probe.missing)})")
     for o in res.stage_outcomes:
         print(f"  stage {o.name}@{o.scale}: {_status_name(o.status)}, {o.rounds} rounds, {o.elapsed_s:.1f} s: {o.message}")
-    print(f"  rounds: {'it':>3s} {'stage':>8s} {'scale':>5s} {'s':>6s} {'passes':>6s} {'chi before -> after':>22s} {'incr px':>8s} engine")
+    print(f"  rounds: {'it':>3s} {'stage':>8s} {'scale':>5s} {'s':>6s} {'passes':>6s} {'chi before -> after':>22s} {'incr px':>8s} "
+          f"{'err px':>7s} engine")
     for e in hist:
+        q = kept.get((e["stage_index"], e["round"], e["chi_before"]))
+        e_px = "-" if q is None else f"{reprojection_error(geom.apply(q), truth, points).rms:.4f}"
         print(f"          {e['iteration']:3d} {e['stage']:>8s} {e['scale']:5d} {e['elapsed_s']:6.1f} {e['n_iter']:6d} "
-              f"{e['chi_before']:10.4g} -> {e['chi_after']:8.4g} {e['increment_px']:8.3f} {e['engine_status']}")
+              f"{e['chi_before']:10.4g} -> {e['chi_after']:8.4g} {e['increment_px']:8.3f} {e_px:>7s} {e['engine_status']}")
     # a round's cost in forward projections of its correlation grid at its scale (issue #11: ~4 at most)
     from pdvc.calibration import refined_grid
 
@@ -434,6 +475,9 @@ def main() -> int:
     ap.add_argument("--keep-data", metavar="DIR", help="keep the simulated scans there and reuse them")
     ap.add_argument("--precession", type=float, default=0.0, metavar="DEG",
                     help="add a once-per-turn precession of the axis of this amplitude (default 0: none)")
+    ap.add_argument("--start", choices=("nominal", "tilt", "roll"), default="nominal",
+                    help="start from the nominal geometry (default), or, as a diagnostic, from the true tilted axis "
+                         "without the drift (tilt) or its tilt in the detector plane alone (roll)")
     ap.add_argument("--_child", help=argparse.SUPPRESS)
     ap.add_argument("--_simulate", help=argparse.SUPPRESS)
     ap.add_argument("--_data", help=argparse.SUPPRESS)
@@ -446,7 +490,7 @@ def main() -> int:
         pin_threads(args.threads)
         if args._simulate:
             return child_simulate(args._simulate, args._data)
-        return child_calibrate(args._child, args._data, args.threads)
+        return child_calibrate(args._child, args._data, args.threads, args.start)
 
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     if args.standard and "standard" not in sizes:
@@ -483,7 +527,8 @@ def main() -> int:
                     continue
             else:
                 print(f"  [{name}] reusing {path}", flush=True)
-            rc, res = _run_child(["--_child", name, "--_data", path, "--threads", str(args.threads)], env)
+            rc, res = _run_child(["--_child", name, "--_data", path, "--threads", str(args.threads), "--start", args.start],
+                                 env)
             results[name] = res if (rc == 0 and res) else dict(name=name, status=f"failed (rc {rc})")
     finally:
         if not args.keep_data:
