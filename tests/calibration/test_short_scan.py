@@ -25,6 +25,11 @@ def test_a_180_degree_parallel_scan_reconstructs_by_nonneg_ls(angles):
     model, note = short_scan_reconstruction(_par(angles), basis="constant")
     assert model == dict(basis="constant", reconstruct="nonneg_ls")
     assert "short parallel-beam scan" in note and "FBP" in note and "fdk" in note
+    assert "tilt along the beam is weakly determined" in note  # the pitch the rounds creep along (method.md §5.15)
+    # ... unless the model holds the tilts fixed (the tooth's config: one constant offset)
+    fixed = short_scan_reconstruction(_par(angles), basis="constant", fixed=["ty", "tz", "rx", "ry", "rz"])[1]
+    assert "short parallel-beam scan" in fixed and "tilt along the beam" not in fixed
+    assert "tilt along the beam" in short_scan_reconstruction(_par(angles), fixed=("rz",))[1]
 
 
 def test_a_cone_beam_short_scan_reconstructs_by_nonneg_ls():
@@ -34,6 +39,7 @@ def test_a_cone_beam_short_scan_reconstructs_by_nonneg_ls():
     model, note = short_scan_reconstruction(geom, basis="constant")
     assert model == dict(basis="constant", reconstruct="nonneg_ls")
     assert "short cone-beam scan" in note and "FDK" in note
+    assert "tilt along the beam" not in note  # the cone breaks the symmetry that makes it near-gauge in parallel beam
 
 
 @pytest.mark.parametrize("geom", [

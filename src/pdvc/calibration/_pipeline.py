@@ -202,7 +202,10 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     consistent reconstruction removes that bias (``docs/method.md`` §6).
     A cone-beam short scan (180° plus the fan angle) is in the same case,
     and its FDK's Parker weights add their own model error. Only when
-    neither ``stages`` nor ``reconstruct`` is given.
+    neither ``stages`` nor ``reconstruct`` is given. On a parallel half
+    turn whose model frees the tilts (``fixed`` without both ``rx`` and
+    ``ry``) the note also says that the axis's tilt along the beam is
+    weakly determined: the loop creeps along it (``docs/method.md`` §5.15).
     """
     if stages is not None or model.get("reconstruct") is not None:
         return model, None
@@ -213,6 +216,11 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     note = (f"a short {geom.kind}-beam scan ({100 * frac:.0f} % of the views have an opposite view): the axis offset "
             f"is weakly determined and the {analytic}'s model error would bias it; the calibration reconstructs by "
             f"non-negative least squares (slower; reconstruct = \"fdk\" for the {analytic})")
+    fixed = model.get("fixed")
+    tilts = fixed is None or not {"rx", "ry"} <= set([fixed] if isinstance(fixed, str) else fixed)
+    if geom.kind == "parallel" and tilts:  # method.md §5.15: the rounds creep along it, stop where its bias leaves them
+        note += ("; the axis's tilt along the beam is weakly determined too: where the model frees it, most of the "
+                 "rounds are spent on it and it limits the accuracy of a half turn (docs/method.md §5.15)")
     return dict(model, reconstruct="nonneg_ls"), note
 
 
