@@ -146,4 +146,3 @@ def test_a_jump_whose_round_does_not_contract_is_undone_and_the_plain_rounds_go_
         np.testing.assert_allclose(b, target + 0.8 * (a - target), atol=1e-9)
     assert res.status == Status.CONVERGED and len(starts) > 8
     assert _error_px(scan, res.poses, target) < 0.05
-

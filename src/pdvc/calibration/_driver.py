@@ -565,16 +565,15 @@ class _StageRun:
             if inc < st.tol_px:
                 status = Status.CONVERGED if st.until == "converged" else Status.ROUNDS_DONE
                 break
-            if st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc and jumped is not None:
-                # the jump overshot or left the series: back to where it started (and to the best round before it),
-                # and on by plain rounds, which stop where they would have without it (one round spent)
-                log.info("round %d: the round from the extrapolated poses moved %.3g px, not less than the %.3g px "
-                         "before the jump; undone, no more jumps in this stage", r, inc, prev_inc)
-                self.poses, self.kept = jumped
-                self.best = best_before
-                may_jump, prev_step = False, None
-                continue
             if st.stall_ratio is not None and prev_inc is not None and inc >= st.stall_ratio * prev_inc:
+                if jumped is not None:
+                    # the jump overshot or left the series: back to where it started (and to the best round before
+                    # it), and on by plain rounds, which stop where they would have without it (one round spent)
+                    log.info("round %d: the round from the extrapolated poses moved %.3g px, not less than the %.3g px "
+                             "before the jump; undone, no more jumps in this stage", r, inc, prev_inc)
+                    self.poses, self.kept, self.best = jumped[0], jumped[1], best_before
+                    may_jump, prev_step = False, None
+                    continue
                 log.info("round %d: increment %.3g px did not contract (previous %.3g px); stopping", r, inc, prev_inc)
                 status = Status.STOPPED_CONTRACTING
                 self.poses, self.kept = prev_poses, prev_kept  # the poses before this round
