@@ -122,13 +122,12 @@ def _problem(name: str):
     from pdvc.simulate import cast_iron_phantom, combine_poses, drift_poses, precession_poses, tilted_axis_poses
 
     n, nv, det, sod, odd, _ = SIZES[name]
+    angles = _angles(name)
     if sod is None:  # parallel beam, pixel = voxel, the volume as tall as the detector
         vg = pdvc.VolumeGeometry((det[0], n, n), voxel_size=1.0)
-        angles = np.linspace(0, np.pi, nv, endpoint=False)
         geom = pdvc.parallel(angles, det_shape=det, pixel=1.0)
     else:
         vg = pdvc.VolumeGeometry((n, n, n), voxel_size=1.0)
-        angles = np.linspace(0, 2 * np.pi, nv, endpoint=False)
         geom = pdvc.circular_cone(angles, sod=sod, odd=odd, det_shape=det, pixel=1.5)
     phantom = cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=3 * n, seed=SEED)
     rv, t = combine_poses(
@@ -138,6 +137,14 @@ def _problem(name: str):
     if _precession_deg():
         rv, t = combine_poses((rv, t), precession_poses(angles, amplitude=np.deg2rad(_precession_deg())))
     return geom, vg, phantom, rv, t
+
+
+def _angles(name: str):
+    """The scan angles of a size: over [0, 180°) in parallel beam, a full turn in cone beam."""
+    import numpy as np
+
+    _, nv, _, sod, _, _ = SIZES[name]
+    return np.linspace(0, np.pi if sod is None else 2 * np.pi, nv, endpoint=False)
 
 
 def _start_poses(name: str, start: str):
@@ -150,10 +157,10 @@ def _start_poses(name: str, start: str):
 
     if start == "nominal":
         return None
-    n, nv, _, sod, _, _ = SIZES[name]
-    angles = np.linspace(0, np.pi if sod is None else 2 * np.pi, nv, endpoint=False)
+    n = SIZES[name][0]
     tilt, az = (TILT_DEG, TILT_AZIMUTH) if start == "tilt" else (TILT_DEG * np.cos(TILT_AZIMUTH), 0.0)
-    return pdvc.Poses(*tilted_axis_poses(angles, tilt=np.deg2rad(tilt), tilt_azimuth=az, offset=(0.04 * n, 0.0, 0.0)))
+    return pdvc.Poses(*tilted_axis_poses(_angles(name), tilt=np.deg2rad(tilt), tilt_azimuth=az,
+                                         offset=(0.04 * n, 0.0, 0.0)))
 
 
 def _precession_deg() -> float:
