@@ -63,6 +63,7 @@ combinations).
     python benchmarks/bench_accuracy.py --quick --split tuning --csv tuning.csv
     python benchmarks/bench_accuracy.py --quick --half-turn     # the same cases as parallel scans over [0, 180°)
     python benchmarks/bench_accuracy.py --quick --short-scan    # ... as cone-beam short scans (180° + the fan angle)
+    python benchmarks/bench_accuracy.py --quick --parallel      # ... as parallel scans over a full turn
     python benchmarks/bench_accuracy.py --quick --roi 1.0       # samples wider than the field of view
 """
 
@@ -109,8 +110,9 @@ OPTIONS: dict = {}
 # --phase, --hardening: what the line-integral model does not hold (edge fringes, cupping), before the noise
 AIR = {"drift": 0.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
-# cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG)
-SCAN = {"half_turn": False, "short_scan": False}
+# cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG);
+# --parallel: every case a parallel scan over a full turn
+SCAN = {"half_turn": False, "short_scan": False, "parallel": False}
 # --roi: the samples' radius in units of the volume's height n (0: the families' own, 0.36 n, inside the volume), on a
 # volume 1.4 n wide, as wide as the field of view. Above 0.7 n the sample is wider than the detector's field of view:
 # a region-of-interest scan (lateral truncation)
@@ -402,7 +404,7 @@ def run_case(c: Case) -> dict:
     from pdvc.geometry import fix_gauge, reprojection_error, sample_points
     from pdvc.simulate import simulate_scan
 
-    if SCAN["half_turn"]:
+    if SCAN["half_turn"] or SCAN["parallel"]:
         c = replace(c, cone_deg=0.0)
     if SCAN["short_scan"] and c.cone_deg == 0:
         c = replace(c, cone_deg=SHORT_SCAN_CONE_DEG)
@@ -540,6 +542,7 @@ def header(args) -> list:
         + (f"; beam hardening, line integrals lowered by {AIR['hardening']} x p / p99.9 (--hardening)"
            if AIR["hardening"] else "")
         + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
+        + ("; every case a parallel scan over a full turn (--parallel)" if SCAN["parallel"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
            f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else "")
         + (f"; samples of radius {ROI['radius']:g} n, wider than the field of view of 0.7 n, on a volume 1.4 n wide "
@@ -690,6 +693,8 @@ def main(argv=None) -> int:
                          "before the noise (cupping; default 0: none)")
     ap.add_argument("--half-turn", action="store_true",
                     help="every case a parallel scan over [0, 180 deg) instead of a full turn (cone angle 0)")
+    ap.add_argument("--parallel", action="store_true",
+                    help="every case a parallel scan over a full turn (cone angle 0)")
     ap.add_argument("--short-scan", action="store_true",
                     help="every case a cone-beam short scan over 180 deg + the fan angle, end views included "
                          f"(parallel cases at a {SHORT_SCAN_CONE_DEG:g} deg cone half-angle)")
@@ -710,11 +715,12 @@ def main(argv=None) -> int:
     AIR["hardening"] = float(args.hardening)
     SCAN["half_turn"] = bool(args.half_turn)
     SCAN["short_scan"] = bool(args.short_scan)
+    SCAN["parallel"] = bool(args.parallel)
     if args.roi < 0:
         ap.error("--roi must be >= 0")
     ROI["radius"] = float(args.roi)
-    if SCAN["half_turn"] and SCAN["short_scan"]:
-        ap.error("--half-turn and --short-scan exclude each other")
+    if SCAN["half_turn"] + SCAN["short_scan"] + SCAN["parallel"] > 1:
+        ap.error("--half-turn, --short-scan and --parallel exclude each other")
     motions = None
     if args.motions is not None:
         motions = tuple(m.strip() for m in args.motions.split(",") if m.strip())
