@@ -354,6 +354,26 @@ def _zinger_line(p, vol_geom, geom, volume) -> str:
             'the median of their neighbours (zingers = "auto")')
 
 
+def _axis_line(p, g) -> str:
+    """The coarse axis without a reconstruction: the opposite views' offset and, in parallel beam, the row sums' tilt."""
+    from .calibration import InitError, estimate_axis_offset, estimate_axis_tilt
+
+    try:
+        est = estimate_axis_offset(p, g)
+        offset, text = est.offset_px, f"offset {est.offset_px:+.2f} px from {est.n_pairs} opposite view pairs"
+    except InitError as exc:
+        offset, text = 0.0, f"offset not measured ({exc})"
+    if g.kind == "parallel":
+        try:
+            t = estimate_axis_tilt(p, g, offset_px=offset)
+            text += (f"; tilt from the row sums: roll {np.rad2deg(t.roll):+.3f}° ± {np.rad2deg(t.roll_sd):.3f}°, pitch "
+                     f"{np.rad2deg(t.pitch):+.3f}° ± {np.rad2deg(t.pitch_sd):.3f}° ({t.significance:.1f} standard "
+                     "deviations)")
+        except InitError as exc:
+            text += f"; tilt not measured ({exc})"
+    return f"axis (coarse, no reconstruction): {text}"
+
+
 def inspect_scan(config) -> tuple[list, list]:
     """Summary lines and a list of problems (empty when consistent)."""
     lines, problems = [], []
@@ -399,6 +419,7 @@ def inspect_scan(config) -> tuple[list, list]:
 
     from .recon import analytic
 
+    lines.append(_axis_line(p, g))
     volume = analytic(p, vg, g)
     trunc, _ = detect_scan_truncation(p, vg, g, volume)  # read off the nominal reconstruction, an air level removed
     lines.append(f"sample and volume: {trunc.describe()}")

@@ -10,7 +10,9 @@
   precession, the drift and jolts of the set-up off the per-view poses;
 * :func:`estimate_axis_offset` finds a large centre-of-rotation offset by
   cross-correlating opposite views, and :func:`offset_poses` turns it into
-  per-view poses.
+  per-view poses; in parallel beam :func:`estimate_axis_tilt` measures the
+  axis's tilt, along the beam too, from the row sums of the views (no
+  reconstruction), and :func:`tilt_poses` turns it into poses;
 * :func:`compare_models` scores motion models (:data:`MODELS`) on views
   they were not fitted to: the default recipe's automatic model choice;
   :func:`cross_validated_misfit` compares finished calibrations by how well
@@ -27,6 +29,7 @@ from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
 from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views, reconstruct, refined_grid, run_stages
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
+from ._rowsums import AxisTiltEstimate, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._epipolar import EpipolarFit, EpipolarViews, epipolar_refine, epipolar_residuals, epipolar_views, view_pairs
@@ -99,6 +102,9 @@ __all__ = [
     "InitError",
     "estimate_axis_offset",
     "offset_poses",
+    "AxisTiltEstimate",
+    "estimate_axis_tilt",
+    "tilt_poses",
     "truncation_weights",
     "air_to_subtract",
     "detect_scan_truncation",

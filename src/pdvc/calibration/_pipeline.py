@@ -31,7 +31,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._init import SHORT_SCAN_OPPOSITE_FRACTION, distinct_directions, opposite_fraction
+from ._init import SHORT_SCAN_OPPOSITE_FRACTION, InitError, distinct_directions, opposite_fraction
 from ._driver import (PosesResult, correlation_volume, data_at_scale, nonneg_subsets, reconstruct, refined_grid, run_stages,
                       stage_background)
 from ._outer import gauge_text
@@ -219,8 +219,9 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     fixed = model.get("fixed")
     tilts = fixed is None or not {"rx", "ry"} <= set([fixed] if isinstance(fixed, str) else fixed)
     if geom.kind == "parallel" and tilts:  # method.md §5.15: the rounds creep along it, stop where its bias leaves them
-        note += ("; the axis's tilt along the beam is weakly determined too: where the model frees it, most of the "
-                 "rounds are spent on it and it limits the accuracy of a half turn (docs/method.md §5.15)")
+        note += ("; the axis's tilt along the beam is weakly determined too: where the model frees it, the rounds "
+                 "walk along it (docs/method.md §5.15); they start from the tilt that the views' row sums measure without a "
+                 "reconstruction where it stands out of the noise (§5.30; not with init = \"none\")")
     return dict(model, reconstruct="nonneg_ls"), note
 
 
@@ -457,8 +458,8 @@ def calibrate(
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
     p, air_text = _air(air, p, timings)  # before the coarse initialisation: a column profile biases opposite views
-    poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings,
-                                              stage_list[0].scale)
+    poses, history, start, offset_px, (tilt, tilt_text) = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale,
+                                                                 emit, timings, stage_list[0].scale)
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
     emit(dict(event="reconstruct", what="nominal"))
     vol_initial = reconstruct(p, vol_geom, geom)
@@ -466,6 +467,9 @@ def calibrate(
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     weights, trunc = _truncation(truncation, weights, None if air == "auto" else p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
+    if tilt is not None:
+        lateral = roi == "on" or (trunc is not None and trunc.lateral)
+        poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
@@ -494,6 +498,8 @@ def calibrate(
         model=drv.model_choice.text() if drv.model_choice is not None else "as given (no candidates compared)",
         reconstruction=short_scan or "as the stages set it", scales=scales_text,
     )
+    if tilt_text:
+        options["axis_tilt"] = tilt_text
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])
     res = _finish(
@@ -787,19 +793,20 @@ def _stage_text(s: Stage) -> str:
 
 
 def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings, scale: int = 1):
-    """(poses, history, (stage index, rounds done), coarse offset) to start from; ``scale``: the first stage's."""
+    """(poses, history, (stage index, rounds done), coarse offset, (the row sums' tilt, to be checked by
+    :func:`_with_tilt`, or None; what they said, "" when not asked)) to start from; ``scale``: the first stage's."""
     if resume:
         log.info("resuming from checkpoint: stage %d, %d rounds done", resume["stage_index"], len(resume["history"]))
         emit(dict(event="resume", stage_index=int(resume["stage_index"]), rounds=len(resume["history"])))
         return (resume["poses"], list(resume["history"]), (int(resume["stage_index"]), int(resume.get("rounds_done", 0))),
-                resume.get("offset_px"))
+                resume.get("offset_px"), (None, ""))
     if initial_poses is not None:
         if not isinstance(initial_poses, Poses) or initial_poses.n_views != geom.n_views:
             raise CalibrationError(f"initial_poses must be a pdvc.geometry.Poses of {geom.n_views} views")
-        return initial_poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale), [], (0, 0), None
+        return initial_poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale), [], (0, 0), None, (None, "")
     if init == "none":
-        return None, [], (0, 0), None
-    from ._init import InitError, estimate_axis_offset, offset_poses
+        return None, [], (0, 0), None, (None, "")
+    from ._init import estimate_axis_offset, offset_poses
 
     emit(dict(event="init"))
     t0 = time.perf_counter()
@@ -810,11 +817,73 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
             raise
         est = _checked_init(p, geom, vol_geom, scale, exc)
         if est is None:
-            return None, [], (0, 0), None
+            return None, [], (0, 0), None, (None, "")
     finally:
         timings["init"] = time.perf_counter() - t0
     log.info("coarse initialisation: axis offset %.2f px from %d opposite view pairs", est.offset_px, est.n_pairs)
-    return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px)
+    t0 = time.perf_counter()
+    tilt = _tilt_init(p, geom, float(est.offset_px))
+    timings["init"] += time.perf_counter() - t0
+    return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px), tilt
+
+
+# the row sums' tilt is used to start from when it stands this many standard deviations above 0, is at most this
+# large (the linearisation), and the rows' first moments are the sinusoids the method assumes (the whole sample
+# across the detector's width)
+TILT_INIT_MIN_SIGNIFICANCE = 8.0
+TILT_INIT_MAX_DEG = 3.0
+TILT_INIT_MIN_MOMENTS_FIT = 0.7
+
+
+def _tilt_init(p, geom, offset_px: float):
+    """(The axis's tilt from the row sums when it is usable, else None; what they said, "" in cone beam).
+
+    :func:`pdvc.calibration.estimate_axis_tilt`.
+
+    Parallel beam only. In a parallel half turn the reconstruct-and-correlate rounds creep toward the axis's tilt
+    along the beam (``docs/method.md`` §5.15); the row sums measure it without a reconstruction.
+    """
+    if geom.kind != "parallel":
+        return None, ""
+    from ._rowsums import estimate_axis_tilt
+
+    try:
+        est = estimate_axis_tilt(p, geom, offset_px=offset_px)
+    except InitError as exc:
+        log.info("axis tilt from the row sums skipped: %s", exc)
+        return None, f"not measured: {exc}"
+    what = (f"roll {np.rad2deg(est.roll):+.3f}° ± {np.rad2deg(est.roll_sd):.3f}°, pitch {np.rad2deg(est.pitch):+.3f}° "
+            f"± {np.rad2deg(est.pitch_sd):.3f}° ({est.significance:.1f} standard deviations; the rows' first moments "
+            f"{100 * est.moments_fit:.0f}% sinusoidal)")
+    if (est.significance < TILT_INIT_MIN_SIGNIFICANCE or est.tilt_deg > TILT_INIT_MAX_DEG
+            or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT):
+        text = (f"{what}: not used (needs at least {TILT_INIT_MIN_SIGNIFICANCE:g} standard deviations, at most "
+                f"{TILT_INIT_MAX_DEG:g}° and {100 * TILT_INIT_MIN_MOMENTS_FIT:.0f}% sinusoidal moments); the stages started "
+                "from the untilted axis")
+        log.info("axis tilt from the row sums %s", text)
+        return None, text
+    log.info("coarse initialisation: axis tilt from the row sums: %s", what)
+    return est, what
+
+
+def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
+    """(The poses to start from, what the report says): the row sums' tilted axis, unless the sample reaches the sides.
+
+    A sample wider than the volume (a region-of-interest scan, as the nominal reconstruction shows it, or
+    ``roi = "on"``) leaves the rows' moments short of what lies outside the field: there the tilt measured is not
+    used (on the tuning half turns of ``bench_accuracy.py --quick --half-turn --roi 0.9`` it made a foam and a
+    granular scan 0.005 and 0.007 px worse).
+    """
+    if lateral:
+        text = (f"{what}: not used, the sample reaches the sides of the volume (a region-of-interest scan: the rows' "
+                "moments miss what lies outside the field); the stages started from the untilted axis")
+        log.info("axis tilt from the row sums %s", text)
+        return poses, text
+    from ._rowsums import tilt_poses
+
+    log.info("coarse initialisation: the stages start from the row sums' tilted axis")
+    return (tilt_poses(geom, roll=tilt.roll, pitch=tilt.pitch, offset_px=offset_px),
+            f"{what}: the stages started from this tilted axis")
 
 
 def _checked_init(p, geom, vol_geom, scale: int, exc: Exception):
