@@ -365,10 +365,7 @@ def _axis_line(p, g) -> str:
         offset, text = 0.0, f"offset not measured ({exc})"
     if g.kind == "parallel":
         try:
-            t = estimate_axis_tilt(p, g, offset_px=offset)
-            text += (f"; tilt from the row sums: roll {np.rad2deg(t.roll):+.3f}° ± {np.rad2deg(t.roll_sd):.3f}°, pitch "
-                     f"{np.rad2deg(t.pitch):+.3f}° ± {np.rad2deg(t.pitch_sd):.3f}° ({t.significance:.1f} standard "
-                     "deviations)")
+            text += f"; tilt from the row sums: {estimate_axis_tilt(p, g, offset_px=offset).describe()}"
         except InitError as exc:
             text += f"; tilt not measured ({exc})"
     return f"axis (coarse, no reconstruction): {text}"

@@ -63,6 +63,8 @@ def test_both_tilts_of_a_drifting_rod_are_found(angles, azimuth):
     # the drift's vertical part (1.5 px over the scan) is what the registration found
     assert abs(np.ptp(est.shifts_px) - 1.5) < 0.3
     assert est.moments_fit > 0.9
+    text = est.describe()
+    assert f"pitch {np.rad2deg(est.pitch):+.3f}°" in text and "standard deviations" in text
 
 
 def test_an_untilted_axis_gives_no_significant_tilt():

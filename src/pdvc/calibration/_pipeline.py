@@ -852,9 +852,7 @@ def _tilt_init(p, geom, offset_px: float):
     except InitError as exc:
         log.info("axis tilt from the row sums skipped: %s", exc)
         return None, f"not measured: {exc}"
-    what = (f"roll {np.rad2deg(est.roll):+.3f}° ± {np.rad2deg(est.roll_sd):.3f}°, pitch {np.rad2deg(est.pitch):+.3f}° "
-            f"± {np.rad2deg(est.pitch_sd):.3f}° ({est.significance:.1f} standard deviations; the rows' first moments "
-            f"{100 * est.moments_fit:.0f}% sinusoidal)")
+    what = est.describe()
     if (est.significance < TILT_INIT_MIN_SIGNIFICANCE or est.tilt_deg > TILT_INIT_MAX_DEG
             or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT):
         text = (f"{what}: not used (needs at least {TILT_INIT_MIN_SIGNIFICANCE:g} standard deviations, at most "

@@ -110,6 +110,13 @@ class AxisTiltEstimate:
         """Angle between the scan's axis and the nominal one, degrees."""
         return float(np.rad2deg(np.hypot(self.roll, self.pitch)))
 
+    def describe(self) -> str:
+        """One line: both tilts in degrees with their standard deviations, the significance and the moments' fit."""
+        d = np.rad2deg
+        return (f"roll {d(self.roll):+.3f}° ± {d(self.roll_sd):.3f}°, pitch {d(self.pitch):+.3f}° ± {d(self.pitch_sd):.3f}° "
+                f"({self.significance:.1f} standard deviations; the rows' first moments {100 * self.moments_fit:.0f}% "
+                "sinusoidal)")
+
 
 def _unit(a: np.ndarray) -> np.ndarray:
     return a / np.linalg.norm(a, axis=1)[:, None]
