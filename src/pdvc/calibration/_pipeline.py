@@ -458,8 +458,11 @@ def calibrate(
     emit = progress if progress is not None else (lambda info: None)
     timings: dict = {}
     p, air_text = _air(air, p, timings)  # before the coarse initialisation: a column profile biases opposite views
-    poses, history, start, offset_px, (tilt, tilt_text) = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale,
-                                                                 emit, timings, stage_list[0].scale)
+    poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings,
+                                              stage_list[0].scale)
+    # a run the coarse initialisation started (not a resumed one, nor the user's poses) measures the tilt too
+    tilt, tilt_text = (_tilt_init(p, geom, offset_px, timings) if offset_px is not None and not resume
+                       and initial_poses is None else (None, ""))
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
     emit(dict(event="reconstruct", what="nominal"))
     vol_initial = reconstruct(p, vol_geom, geom)
@@ -793,19 +796,18 @@ def _stage_text(s: Stage) -> str:
 
 
 def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings, scale: int = 1):
-    """(poses, history, (stage index, rounds done), coarse offset, (the row sums' tilt, to be checked by
-    :func:`_with_tilt`, or None; what they said, "" when not asked)) to start from; ``scale``: the first stage's."""
+    """(poses, history, (stage index, rounds done), coarse offset) to start from; ``scale``: the first stage's."""
     if resume:
         log.info("resuming from checkpoint: stage %d, %d rounds done", resume["stage_index"], len(resume["history"]))
         emit(dict(event="resume", stage_index=int(resume["stage_index"]), rounds=len(resume["history"])))
         return (resume["poses"], list(resume["history"]), (int(resume["stage_index"]), int(resume.get("rounds_done", 0))),
-                resume.get("offset_px"), (None, ""))
+                resume.get("offset_px"))
     if initial_poses is not None:
         if not isinstance(initial_poses, Poses) or initial_poses.n_views != geom.n_views:
             raise CalibrationError(f"initial_poses must be a pdvc.geometry.Poses of {geom.n_views} views")
-        return initial_poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale), [], (0, 0), None, (None, "")
+        return initial_poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale), [], (0, 0), None
     if init == "none":
-        return None, [], (0, 0), None, (None, "")
+        return None, [], (0, 0), None
     from ._init import estimate_axis_offset, offset_poses
 
     emit(dict(event="init"))
@@ -817,14 +819,11 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
             raise
         est = _checked_init(p, geom, vol_geom, scale, exc)
         if est is None:
-            return None, [], (0, 0), None, (None, "")
+            return None, [], (0, 0), None
     finally:
         timings["init"] = time.perf_counter() - t0
     log.info("coarse initialisation: axis offset %.2f px from %d opposite view pairs", est.offset_px, est.n_pairs)
-    t0 = time.perf_counter()
-    tilt = _tilt_init(p, geom, float(est.offset_px))
-    timings["init"] += time.perf_counter() - t0
-    return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px), tilt
+    return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px)
 
 
 # the row sums' tilt is used to start from when it stands this many standard deviations above 0, is at most this
@@ -835,10 +834,11 @@ TILT_INIT_MAX_DEG = 3.0
 TILT_INIT_MIN_MOMENTS_FIT = 0.7
 
 
-def _tilt_init(p, geom, offset_px: float):
+def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
     """(The axis's tilt from the row sums when it is usable, else None; what they said, "" in cone beam).
 
-    :func:`pdvc.calibration.estimate_axis_tilt`.
+    :func:`pdvc.calibration.estimate_axis_tilt`, its time added to ``timings["init"]``; whether the stages start
+    from it is :func:`_with_tilt`'s decision, once the nominal reconstruction has shown the sample.
 
     Parallel beam only. In a parallel half turn the reconstruct-and-correlate rounds creep toward the axis's tilt
     along the beam (``docs/method.md`` §5.15); the row sums measure it without a reconstruction.
@@ -847,11 +847,15 @@ def _tilt_init(p, geom, offset_px: float):
         return None, ""
     from ._rowsums import estimate_axis_tilt
 
+    t0 = time.perf_counter()
     try:
         est = estimate_axis_tilt(p, geom, offset_px=offset_px)
     except InitError as exc:
         log.info("axis tilt from the row sums skipped: %s", exc)
         return None, f"not measured: {exc}"
+    finally:
+        if timings is not None:
+            timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
     what = est.describe()
     if (est.significance < TILT_INIT_MIN_SIGNIFICANCE or est.tilt_deg > TILT_INIT_MAX_DEG
             or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT):

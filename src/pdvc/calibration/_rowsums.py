@@ -49,6 +49,7 @@ from scipy.ndimage import shift as _shift
 from ..correlation import estimate_noise_variance
 from ..errors import InputTypeError
 from ..geometry import Poses, VectorGeometry
+from ..io._preprocess import _robust_std
 from ..io._zingers import isolated_outliers
 from ._init import InitError, offset_poses
 
@@ -56,7 +57,6 @@ __all__ = ["AxisTiltEstimate", "estimate_axis_tilt", "tilt_poses"]
 
 log = logging.getLogger(__name__)
 
-_MAD_TO_SIGMA = 1.4826
 _EDGE_ROWS = 4  # rows left out at the top and bottom (the vertical registration's spline edges)
 _REGISTRATION_ROUNDS = 6
 _SMOOTH_ROWS = 1.0  # Gaussian sigma, rows, of the profiles before their derivatives
@@ -140,7 +140,7 @@ def _check_geometry(geom: VectorGeometry) -> None:
 
 
 def _robust_weights(r: np.ndarray) -> np.ndarray:
-    s = _MAD_TO_SIGMA * np.median(np.abs(r - np.median(r)))
+    s = _robust_std(r)
     if not s > 0:
         return np.ones_like(r)
     a = np.abs(r) / (_HUBER * s)
@@ -165,7 +165,7 @@ def _register(m: np.ndarray, keep: slice) -> np.ndarray:
     return dz
 
 
-def _row_moments(U: np.ndarray, m: np.ndarray, uu: np.ndarray) -> np.ndarray:
+def _row_moments(U: np.ndarray, uu: np.ndarray) -> np.ndarray:
     """``(X_x, X_y, C)`` per row: the robust fit ``U_k(v) = X(v) · û_k + C(v)`` over the views; (3, n_rows)."""
     A = np.column_stack([uu[:, 0], uu[:, 1], np.ones(uu.shape[0])])
     coef = np.linalg.lstsq(A, U, rcond=None)[0]
@@ -246,7 +246,7 @@ def estimate_axis_tilt(projections, geom: VectorGeometry, *, offset_px: float = 
     m = np.stack([_shift(m[k], -dz[k], order=3, mode="nearest") for k in range(nv)])
     U = np.stack([_shift(U[k], -dz[k], order=3, mode="nearest") for k in range(nv)])
     uu, rr = _unit(geom.u), _unit(geom.ray)
-    coef = _row_moments(U, m, uu)
+    coef = _row_moments(U, uu)
     U_fit = np.column_stack([uu[:, 0], uu[:, 1], np.ones(nv)]) @ coef
     spread = float(np.sum((U - U.mean(0))[:, keep] ** 2))
     moments_fit = 1.0 - float(np.sum((U - U_fit)[:, keep] ** 2)) / spread if spread > 0 else 0.0
@@ -296,9 +296,9 @@ def tilt_poses(geom: VectorGeometry, *, roll: float, pitch: float, offset_px: fl
     """Per-view poses of a sample turning about the axis tilted by ``roll`` and ``pitch`` and offset by ``offset_px``.
 
     The constant lab rotation of :class:`AxisTiltEstimate` written in each
-    view's sample frame, ``-(roll · r̂_k + pitch · û_k)`` (first order in the
-    tilt, as :func:`pdvc.simulate.tilted_axis_poses` is to second order),
-    with the translations of :func:`pdvc.calibration.offset_poses`.
+    view's sample frame, ``-(roll · r̂_k + pitch · û_k)``, first order in the
+    tilt (:func:`pdvc.simulate.tilted_axis_poses` is exact), with the
+    translations of :func:`pdvc.calibration.offset_poses`.
     """
     base = offset_poses(geom, offset_px)
     rot = -(float(roll) * _unit(geom.ray if geom.kind == "parallel" else geom.det_center - geom.src)
