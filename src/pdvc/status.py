@@ -30,6 +30,7 @@ class Status(enum.IntEnum):
     ROUNDS_DONE = 7
     FIXED_POINT = 8
     CONSISTENCY_GUARD = 9
+    ROW_SUMS_GUARD = 10
     # -- failures ----------------------------------------------------------------
     MAX_ITER = 0
     NO_DESCENT = -1
@@ -63,6 +64,8 @@ _MESSAGES = {
     Status.FIXED_POINT: "stopped: no correlation step lowers chi from the current poses (a fixed point of the loop)",
     Status.CONSISTENCY_GUARD: "stopped: the data consistency of a fresh reconstruction rose above the best of the "
     "stage (the loop passed its best point); the poses with the best consistency are kept",
+    Status.ROW_SUMS_GUARD: "stopped: the rounds moved the axis's tilt away from what the row sums of the views say (the "
+    "loop walked along the pitch); the poses the row sums agree with best are kept",
     Status.MAX_ITER: "not converged: the iteration cap was reached while the poses were still moving",
     Status.NO_DESCENT: "not converged: no damped step lowered chi any further; the last accepted poses are kept",
     Status.DIVERGED: "diverged: no round of the stage made the reconstruction fit the data better; "

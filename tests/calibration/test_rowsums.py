@@ -15,8 +15,9 @@ import pytest
 from numpy.testing import assert_allclose
 
 import pdvc
-from pdvc.calibration import InitError, estimate_axis_tilt, offset_poses, tilt_poses
-from pdvc.calibration._pipeline import _tilt_init, _with_tilt
+from pdvc import Status
+from pdvc.calibration import InitError, RowSumConsistency, Stage, estimate_axis_tilt, offset_poses, run_stages, tilt_poses
+from pdvc.calibration._pipeline import _row_sums_guard, _tilt_init, _with_tilt
 from pdvc.errors import InputTypeError
 from pdvc.geometry import circular_cone, fix_gauge, parallel, reprojection_error, sample_points
 from pdvc.simulate import combine_poses, foam_phantom, drift_poses, simulate_scan, tilted_axis_poses
@@ -72,7 +73,7 @@ def test_an_untilted_axis_gives_no_significant_tilt():
     est = estimate_axis_tilt(p, geom, offset_px=2.5)
     assert abs(est.roll) < max(4 * est.roll_sd, np.deg2rad(0.02))
     assert abs(est.pitch) < max(4 * est.pitch_sd, np.deg2rad(0.02))
-    est, text = _tilt_init(p, geom, 2.5)
+    est, text, _ = _tilt_init(p, geom, 2.5)
     assert est is None and "not used" in text  # and the pipeline starts from the offset alone
 
 
@@ -125,7 +126,7 @@ def test_what_the_row_sums_cannot_measure_is_refused():
     p = np.zeros((24, *DET), np.float32)
     with pytest.raises(InitError, match="parallel beam only"):
         estimate_axis_tilt(p, cone)
-    assert _tilt_init(p, cone, 0.0) == (None, "")
+    assert _tilt_init(p, cone, 0.0) == (None, "", None)
     with pytest.raises(InitError, match="shape"):
         estimate_axis_tilt(p[:, :-1], _geom(angles))
     with pytest.raises(InitError, match="no signal"):
@@ -185,3 +186,109 @@ def test_inspect_prints_the_row_sums_tilt(half_turn, tmp_path):
     est = estimate_axis_tilt(p, geom, offset_px=2.5)
     pitch = float(line.split("pitch ")[1].split("°")[0])
     assert "offset +2." in line and abs(pitch - np.rad2deg(est.pitch)) < 0.01, line
+
+
+# -- the row sums' misfit of per-view poses, and the guard it makes ------------------------------------------------
+def test_the_misfit_is_one_at_the_estimate_rises_off_it_and_ignores_the_gauge():
+    geom, p = _scan(HALF, drift=(0.0, 0.0, 0.0))
+    rs = RowSumConsistency(p, geom, offset_px=2.5)
+    est = rs.estimate
+    assert_allclose([est.roll, est.pitch], [estimate_axis_tilt(p, geom, offset_px=2.5).roll,
+                                            estimate_axis_tilt(p, geom, offset_px=2.5).pitch])
+    at = tilt_poses(geom, roll=est.roll, pitch=est.pitch).rotvecs
+    assert rs.misfit(at) == pytest.approx(1.0, abs=1e-9)
+    # the true poses (exact tilted axis, not the first-order model) are about as consistent: measured 1.0046
+    rv, _ = tilted_axis_poses(HALF, tilt=TILT, tilt_azimuth=0.9, offset=(2.5, 0.0, 0.0))
+    assert 1.0 <= rs.misfit(rv) < 1.01
+    # a walk along the pitch (or the roll) raises it: measured +0.1°: 1.3 %, +0.2°: 5.1 %, roll +0.2°: 1.9 %
+    walked = [rs.misfit(tilt_poses(geom, roll=est.roll, pitch=est.pitch + np.deg2rad(d)).rotvecs) for d in (0.1, 0.2, 0.4)]
+    assert 1.005 < walked[0] < walked[1] < walked[2], walked
+    assert rs.misfit(tilt_poses(geom, roll=est.roll + np.deg2rad(0.2), pitch=est.pitch).rotvecs) > 1.01
+    assert rs.misfit(np.zeros_like(rv)) > 1.3  # the untilted axis
+    # a constant rotation of the sample (the gauge) changes nothing, nor does a rotation about the axis
+    for axis in np.eye(3):
+        assert rs.misfit(rv + np.deg2rad(0.5) * axis) == pytest.approx(rs.misfit(rv), rel=1e-9)
+    with pytest.raises(InitError, match="rotvecs must have shape"):
+        rs.misfit(rv[:-1])
+
+
+class _Scripted:
+    """A stand-in for RowSumConsistency whose misfit follows a script: the stage's start, then each round."""
+
+    def __init__(self, values):
+        self.values, self.seen = list(values), []
+
+    def misfit(self, rotvecs):
+        self.seen.append(np.array(rotvecs))
+        return self.values[len(self.seen) - 1]
+
+
+def test_the_row_sums_guard_stops_the_stage_and_keeps_the_poses_they_agree_with_best(half_turn, monkeypatch):
+    from pdvc.calibration import _driver
+
+    monkeypatch.setattr(_driver, "ROW_SUMS_CREEP", 1e12)  # every round creeps: the guard from the first round on
+    geom, p = half_turn
+    vg = pdvc.VolumeGeometry((DET[0], N, N))
+    st = Stage(name="m", basis="constant", frame="lab", fixed=("rz", "ty"), until="rounds", rounds=6, tol_px=1e-9,
+               stall_ratio=None, scale=2, guards=())
+    seen = []
+    # lowest at round 1; round 2 within ROW_SUMS_TOL of it goes on; round 3 rises above: the stage stops there
+    script = _Scripted([0.95, 0.9, 0.902, 0.95, 0.8, 0.8])
+    start = offset_poses(geom, 2.5)
+    out = run_stages(p, geom, vg, [st], noise_variance=1e-4, poses=start, row_sums=script,
+                     checkpoint=lambda s: seen.append(s["poses"]))
+    assert out.stages[0].status == Status.ROW_SUMS_GUARD and out.status.success
+    assert out.stages[0].rounds == 4 and len(script.seen) == 4
+    assert_allclose(out.poses.rotvecs, seen[1].rotvecs)
+    assert_allclose(script.seen[1], seen[1].rotvecs)  # the misfit was measured on each round's poses
+    # the first round sets the reference, however far it moved from the start (the row sums' own tilt, where the
+    # stage started from it, is their minimum)
+    script = _Scripted([5.0, 4.99, 4.98])
+    out = run_stages(p, geom, vg, [st.replace(rounds=3)], noise_variance=1e-4, poses=start, row_sums=script)
+    assert out.stages[0].status == Status.ROUNDS_DONE and len(script.seen) == 3
+    # rounds that still move the points by more than ROW_SUMS_CREEP x tol_px approach the data: no guard yet
+    monkeypatch.setattr(_driver, "ROW_SUMS_CREEP", 0.0)
+    script = _Scripted([0.95, 0.9, 0.902, 0.95, 0.8, 0.8])
+    out = run_stages(p, geom, vg, [st.replace(rounds=4)], noise_variance=1e-4, poses=start, row_sums=script)
+    assert out.stages[0].status == Status.ROUNDS_DONE and script.seen == []
+    # without the row sums the stage runs its rounds
+    free = run_stages(p, geom, vg, [st.replace(rounds=3)], noise_variance=1e-4, poses=start)
+    assert free.stages[0].status == Status.ROUNDS_DONE and free.stages[0].rounds == 3
+
+
+def test_the_guard_stops_the_walk_along_the_pitch_of_a_half_turn(monkeypatch):
+    """A foam rod whose axis leans 0.8° toward the source, parallel half turn: the rounds walk along the pitch.
+
+    Measured (this scan): with the row sums' guard 0.0101 px (status row_sums_guard), without it 0.0196 px
+    (converged, walked past the truth); the row sums' tilt, the start of both, is the same.
+    """
+    from pdvc.calibration import _driver
+
+    tilt, az = np.deg2rad(0.8), -np.pi / 2
+    geom, p = _scan(HALF, tilt=tilt, azimuth=az, drift=(0.0, 0.0, 0.0), i0=2e4, seed=1)
+    vg = pdvc.VolumeGeometry((DET[0], N, N))
+    pts = sample_points(vg, 5, fraction=0.6)
+    truth = geom.apply_poses(*fix_gauge(*tilted_axis_poses(HALF, tilt=tilt, tilt_azimuth=az, offset=(2.5, 0.0, 0.0)),
+                                        geom, center=vg.offset))
+    res = pdvc.calibrate(p, geom, vg)
+    err = reprojection_error(res.geometry, truth, pts).rms
+    assert res.status == Status.ROW_SUMS_GUARD and res.success, res.message
+    assert err < 0.015, err
+    assert res.options["row_sums_guard"].startswith("on: ")
+    monkeypatch.setattr(_driver, "ROW_SUMS_TOL", np.inf)  # the same run without the guard walks on
+    free = pdvc.calibrate(p, geom, vg)
+    assert free.status != Status.ROW_SUMS_GUARD
+    assert err < 0.75 * reprojection_error(free.geometry, truth, pts).rms
+
+
+def test_the_guard_is_on_for_half_turns_of_samples_inside_the_field_only(half_turn):
+    geom, p = half_turn
+    rs = RowSumConsistency(p, geom, offset_px=2.5)
+    assert _row_sums_guard(rs, "roll ...", geom, False)[0] is rs
+    for args, why in [((rs, "roll ...", _geom(FULL), False), "opposite views"),
+                      ((rs, "roll ...", geom, True), "region-of-interest"),
+                      ((None, "roll ...", geom, False), "not sinusoidal")]:
+        guard, text = _row_sums_guard(*args)
+        assert guard is None and text.startswith("off: ") and why in text, text
+    assert _row_sums_guard(None, "", geom, False) == (None, "")  # cone beam: nothing measured, nothing said
+    assert _row_sums_guard(None, "not measured: ...", geom, False) == (None, "")

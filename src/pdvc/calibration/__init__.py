@@ -29,7 +29,7 @@ from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
 from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views, reconstruct, refined_grid, run_stages
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
-from ._rowsums import AxisTiltEstimate, estimate_axis_tilt, tilt_poses
+from ._rowsums import AxisTiltEstimate, RowSumConsistency, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._epipolar import EpipolarFit, EpipolarViews, epipolar_refine, epipolar_residuals, epipolar_views, view_pairs
@@ -103,6 +103,7 @@ __all__ = [
     "estimate_axis_offset",
     "offset_poses",
     "AxisTiltEstimate",
+    "RowSumConsistency",
     "estimate_axis_tilt",
     "tilt_poses",
     "truncation_weights",

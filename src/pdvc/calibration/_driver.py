@@ -181,6 +181,11 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
     return np.nonzero((dip > z * sigma) & (dip > min_drop_db))[0]
 
 
+#: the row sums' guard (``run_stages(row_sums=...)``): once a stage's rounds creep (a round moved the sample points by
+#: less than ROW_SUMS_CREEP x its tol_px), it stops when their misfit rises ROW_SUMS_TOL above the lowest since
+#: (docs/method.md §5.31)
+ROW_SUMS_TOL = 0.01
+ROW_SUMS_CREEP = 10.0
 #: jolt views are confirmed on the residual without each view's largest pixels, this fraction of them (and at least
 #: JOLT_TRIM_MIN): a zinger or spot the filter left makes its view's SNR dip as a jolt does, but a jolt misplaces
 #: every edge of its views
@@ -373,6 +378,7 @@ def run_stages(
     history=(),
     checkpoint: Optional[Callable[[dict], object]] = None,
     progress: Optional[Callable[[dict], object]] = None,
+    row_sums=None,
 ) -> DriverResult:
     """Run ``stages`` in order from ``poses``; return the poses kept and why it stopped.
 
@@ -396,6 +402,13 @@ def run_stages(
     progress : callable, optional
         Called with a dict at the start of every stage (``event="stage"``)
         and after every round (``event="round"``).
+    row_sums : RowSumConsistency, optional
+        The row sums of a parallel scan (:class:`pdvc.calibration.RowSumConsistency`):
+        once a stage's rounds creep (a round moved the sample points by less
+        than ``ROW_SUMS_CREEP × tol_px``), a round that raises their misfit
+        by more than ``ROW_SUMS_TOL`` above the lowest since stops the stage,
+        which keeps the poses of that lowest (``ROW_SUMS_GUARD``;
+        ``docs/method.md`` §5.31).
     """
     stages = tuple(stages)
     if not stages or not all(isinstance(s, Stage) for s in stages):
@@ -404,6 +417,7 @@ def run_stages(
         projections, geom, vol_geom, weights=weights, gamma2=float(noise_variance), fix_scale=fix_scale,
         angles=angles, times=times, backend=backend, center=center,
     )
+    ctx.row_sums = row_sums
     poses = Poses.identity(geom.n_views) if poses is None else poses
     history = list(history)
     for h in history:  # a resumed run keeps the decision its first round made
@@ -486,6 +500,10 @@ class _StageRun:
         self.kept = None  # the correlation whose poses are self.poses
         self.volume = volume  # (poses, correlation volume) of the current round (given: already made at ``poses``)
         self.volume_at_poses = None  # the correlation volume made at the poses the stage returns, if one was
+        # the row sums' guard: (misfit, poses, correlation, round) of the round's poses they agree with best, from the
+        # first round that moved the points by less than ROW_SUMS_CREEP x tol_px on (the rounds before approach the
+        # data; the walk is what comes after)
+        self.rs_best = None
 
     def run(self, first_round: int):
         st = self.stage
@@ -562,6 +580,17 @@ class _StageRun:
             prev_poses, prev_kept = self.poses, self.kept
             self.poses, self.kept = new, res
             self._record(r, res, chi_before, entropy, inc, inc_max, extrapolated=jumped is not None)
+            if self.ctx.row_sums is not None and (self.rs_best is not None or inc < ROW_SUMS_CREEP * st.tol_px):
+                rs = self.ctx.row_sums.misfit(new.rotvecs)
+                log.debug("round %d: the row sums' misfit %.5g", r, rs)
+                if self.rs_best is None or rs < self.rs_best[0]:
+                    self.rs_best = (rs, new, res, r)
+                elif rs > self.rs_best[0] * (1 + ROW_SUMS_TOL):
+                    log.info("round %d: the row sums' misfit %.5g rose above the lowest %.5g (round %d); keeping its poses",
+                             r, rs, self.rs_best[0], self.rs_best[3])
+                    status = Status.ROW_SUMS_GUARD
+                    self.poses, self.kept = self.rs_best[1], self.rs_best[2]
+                    break
             if inc < st.tol_px:
                 status = Status.CONVERGED if st.until == "converged" else Status.ROUNDS_DONE
                 break

@@ -461,8 +461,8 @@ def calibrate(
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings,
                                               stage_list[0].scale)
     # a run the coarse initialisation started (not a resumed one, nor the user's poses) measures the tilt too
-    tilt, tilt_text = (_tilt_init(p, geom, offset_px, timings) if offset_px is not None and not resume
-                       and initial_poses is None else (None, ""))
+    tilt, tilt_text, row_sums = (_tilt_init(p, geom, offset_px, timings) if offset_px is not None and not resume
+                                 and initial_poses is None else (None, "", None))
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
     emit(dict(event="reconstruct", what="nominal"))
     vol_initial = reconstruct(p, vol_geom, geom)
@@ -473,6 +473,7 @@ def calibrate(
     if tilt is not None:
         lateral = roi == "on" or (trunc is not None and trunc.lateral)
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
+    row_sums, guard_text = _row_sums_guard(row_sums, tilt_text, geom, roi == "on" or (trunc is not None and trunc.lateral))
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
@@ -484,7 +485,7 @@ def calibrate(
     drv = run_stages(
         p, geom, vol_geom, stage_list, poses=poses, noise_variance=gamma2, weights=weights, fix_scale=fix_scale,
         times=times, center=center, backend=backend, start=start, history=history, checkpoint=state_checkpoint,
-        progress=emit,
+        progress=emit, row_sums=row_sums,
     )
     timings["stages"] = time.perf_counter() - t0
     for i, o in enumerate(drv.stages):
@@ -503,6 +504,8 @@ def calibrate(
     )
     if tilt_text:
         options["axis_tilt"] = tilt_text
+    if guard_text:
+        options["row_sums_guard"] = guard_text
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])
     res = _finish(
@@ -835,7 +838,8 @@ TILT_INIT_MIN_MOMENTS_FIT = 0.7
 
 
 def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
-    """(The axis's tilt from the row sums when it is usable, else None; what they said, "" in cone beam).
+    """(The axis's tilt from the row sums when it is usable, else None; what they said, "" in cone beam; the row sums'
+    :class:`RowSumConsistency` for the guard when their moments are sinusoidal, else None).
 
     :func:`pdvc.calibration.estimate_axis_tilt`, its time added to ``timings["init"]``; whether the stages start
     from it is :func:`_with_tilt`'s decision, once the nominal reconstruction has shown the sample.
@@ -844,18 +848,20 @@ def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
     along the beam (``docs/method.md`` §5.15); the row sums measure it without a reconstruction.
     """
     if geom.kind != "parallel":
-        return None, ""
-    from ._rowsums import estimate_axis_tilt
+        return None, "", None
+    from ._rowsums import RowSumConsistency
 
     t0 = time.perf_counter()
     try:
-        est = estimate_axis_tilt(p, geom, offset_px=offset_px)
+        rs = RowSumConsistency(p, geom, offset_px=offset_px)
     except InitError as exc:
         log.info("axis tilt from the row sums skipped: %s", exc)
-        return None, f"not measured: {exc}"
+        return None, f"not measured: {exc}", None
     finally:
         if timings is not None:
             timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
+    est = rs.estimate
+    guard = rs if est.moments_fit >= TILT_INIT_MIN_MOMENTS_FIT else None
     what = est.describe()
     if (est.significance < TILT_INIT_MIN_SIGNIFICANCE or est.tilt_deg > TILT_INIT_MAX_DEG
             or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT):
@@ -863,9 +869,9 @@ def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
                 f"{TILT_INIT_MAX_DEG:g}° and {100 * TILT_INIT_MIN_MOMENTS_FIT:.0f}% sinusoidal moments); the stages started "
                 "from the untilted axis")
         log.info("axis tilt from the row sums %s", text)
-        return None, text
+        return None, text, guard
     log.info("coarse initialisation: axis tilt from the row sums: %s", what)
-    return est, what
+    return est, what, guard
 
 
 def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
@@ -886,6 +892,25 @@ def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
     log.info("coarse initialisation: the stages start from the row sums' tilted axis")
     return (tilt_poses(geom, roll=tilt.roll, pitch=tilt.pitch, offset_px=offset_px),
             f"{what}: the stages started from this tilted axis")
+
+
+def _row_sums_guard(row_sums, tilt_text: str, geom, lateral: bool):
+    """(The row sums the stages' guard reads, or None; what the report says of it, "" where none were measured).
+
+    The guard (``run_stages(row_sums=...)``, ``docs/method.md`` §5.31) stops the walk along the pitch of a scan
+    without opposite views; a full turn settles the tilt itself, and a sample wider than the volume leaves the rows'
+    moments short of what lies outside the field.
+    """
+    if not tilt_text or tilt_text.startswith("not measured"):
+        return None, ""
+    why = ("the rows' first moments are not sinusoidal enough" if row_sums is None
+           else "the sample reaches the sides of the volume (a region-of-interest scan)" if lateral
+           else "the scan has opposite views, whose rounds settle the tilt"
+           if opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION else "")
+    if why:
+        return None, f"off: {why}"
+    return row_sums, ("on: once the rounds creep, a stage stops where its poses leave the tilt the row sums agree with "
+                      "(docs/method.md §5.31)")
 
 
 def _checked_init(p, geom, vol_geom, scale: int, exc: Exception):

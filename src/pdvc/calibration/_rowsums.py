@@ -53,7 +53,7 @@ from ..io._preprocess import _robust_std
 from ..io._zingers import isolated_outliers
 from ._init import InitError, offset_poses
 
-__all__ = ["AxisTiltEstimate", "estimate_axis_tilt", "tilt_poses"]
+__all__ = ["AxisTiltEstimate", "RowSumConsistency", "estimate_axis_tilt", "tilt_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +197,118 @@ def _double_centre(z: np.ndarray) -> np.ndarray:
     return z - z.mean(0) - z.mean(1)[:, None] + z.mean()
 
 
+class RowSumConsistency:
+    """The row sums of a parallel scan, fitted once: the axis's tilt and how consistent any poses are with them.
+
+    ``RowSumConsistency(projections, geom, offset_px=...)`` makes the fit of
+    :func:`estimate_axis_tilt` (its result is :attr:`estimate`) and keeps
+    what :meth:`misfit` needs to score per-view poses by the same first-order
+    model, view by view: the row sums predicted for the tilts that the poses
+    give each view, against those measured. No reconstruction; a
+    reconstruct-and-correlate loop that walks along the pitch of a parallel
+    half turn (``docs/method.md`` §5.31) raises it.
+
+    Parameters are those of :func:`estimate_axis_tilt`, which raises the same errors.
+    """
+
+    def __init__(self, projections, geom: VectorGeometry, *, offset_px: float = 0.0):
+        _check_geometry(geom)
+        p = np.asarray(projections)
+        nv, nr, nc = geom.n_views, *geom.det_shape
+        if p.shape != (nv, nr, nc):
+            raise InitError(f"projections must have shape {(nv, nr, nc)}, got {p.shape}")
+        if nr < 3 * _EDGE_ROWS:
+            raise InitError(f"the row sums need at least {3 * _EDGE_ROWS} detector rows, got {nr}")
+        a = np.arange(nc, dtype=np.float64) - (nc - 1) / 2 - float(offset_px)
+        m = np.empty((nv, nr))
+        U = np.empty((nv, nr))
+        bad = [k for k in range(nv) if not np.all(np.isfinite(p[k]))]
+        if bad:
+            raise InitError(f"the projections hold NaN or Inf values (views {bad[:5]}{' ...' if len(bad) > 5 else ''})")
+        sigma = float(np.sqrt(estimate_noise_variance(p)))
+        for k in range(nv):  # one view at a time: no float64 copy of the whole stack
+            pk = _without_zingers(np.asarray(p[k], dtype=np.float64), sigma)
+            m[k] = pk.sum(1)
+            U[k] = pk @ a
+        keep = slice(_EDGE_ROWS, nr - _EDGE_ROWS)
+        dz = _register(m, keep)
+        m = np.stack([_shift(m[k], -dz[k], order=3, mode="nearest") for k in range(nv)])
+        U = np.stack([_shift(U[k], -dz[k], order=3, mode="nearest") for k in range(nv)])
+        uu, rr = _unit(geom.u), _unit(geom.ray)
+        coef = _row_moments(U, uu)
+        U_fit = np.column_stack([uu[:, 0], uu[:, 1], np.ones(nv)]) @ coef
+        spread = float(np.sum((U - U.mean(0))[:, keep] ** 2))
+        moments_fit = 1.0 - float(np.sum((U - U_fit)[:, keep] ** 2)) / spread if spread > 0 else 0.0
+        # derivatives along the rows of the profiles smoothed by a Gaussian, and the profiles smoothed the same way: the
+        # first-order relation holds for the smoothed profiles exactly, and the Gaussian's derivative is exact where a
+        # finite difference of sharp profiles is not (central differences of a foam's 2-4 px cells overestimated the
+        # tilt by 25 %)
+        dU = _gaussian(U_fit, _SMOOTH_ROWS, axis=1, order=1)
+        dW = _gaussian(rr[:, :2] @ coef[:2], _SMOOTH_ROWS, axis=1, order=1)
+        dM = _gaussian(m.mean(0), _SMOOTH_ROWS, order=1)
+        m = _gaussian(m, _SMOOTH_ROWS, axis=1)
+        t = np.linspace(-1.0, 1.0, nv)[:, None]
+        # roll, pitch, and what the registration left of a vertical drift (a quadratic in time)
+        # (a drift constant in time is a per-row mean, which the double centring removes)
+        cols = [dU, -dW, -t * dM[None, :], -(t * t) * dM[None, :]]
+        X = np.column_stack([_double_centre(c)[:, keep].ravel() for c in cols])
+        y = _double_centre(m)[:, keep].ravel()
+        if not np.any(X[:, :2]):
+            raise InitError("the row sums hold no signal for the tilt (an empty or featureless scan)")
+        w = np.ones_like(y)
+        for _ in range(4):
+            sw = np.sqrt(w)
+            beta, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
+            res = y - X @ beta
+            w = _robust_weights(res)
+        dof = max(int(np.sum(w > 0)) - X.shape[1], 1)
+        s2 = float(np.sum(w * res * res)) / dof
+        N = (X * w[:, None]).T @ X
+        try:
+            cov = s2 * np.linalg.inv(N)
+        except np.linalg.LinAlgError as exc:
+            raise InitError("the row sums cannot tell the tilt from a vertical drift (singular fit)") from exc
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        res0 = y - X[:, 2:] @ np.linalg.lstsq(X[:, 2:] * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
+        ss0, ss1 = float(np.sum(w * res0 * res0)), float(np.sum(w * res * res))
+        explained = 1.0 - ss1 / ss0 if ss0 > 0 else 0.0
+        self.estimate = AxisTiltEstimate(
+            roll=float(beta[0]), pitch=float(beta[1]), roll_sd=float(sd[0]), pitch_sd=float(sd[1]), shifts_px=dz,
+            explained=float(explained), moments_fit=float(moments_fit), n_rows=nr - 2 * _EDGE_ROWS)
+        # what misfit() needs: the smoothed profiles, the regressors per view, the weights of the fit, its residual
+        self._m, self._dW, self._keep = m, dW, keep
+        self._dU = _gaussian(uu[:, :2] @ coef[:2], _SMOOTH_ROWS, axis=1, order=1)
+        self._ray, self._u = rr, uu
+        self._w, self._drift = w, X[:, 2:]
+        self._ss = ss1
+        self._n_views = nv
+
+    def misfit(self, rotvecs) -> float:
+        """How far per-view poses' rotations are from the row sums: the weighted residual over the best constant tilt's.
+
+        ``rotvecs`` (n_views, 3), the poses' rotation vectors (relative to the
+        nominal geometry, as :class:`pdvc.Poses` holds them). Each view's
+        tilt is read from its rotation, ``roll_k = -ω_k · r̂_k``, ``pitch_k =
+        -ω_k · û_k`` (:func:`tilt_poses` inverted, view by view), the row
+        sums are corrected by what those tilts change to first order, and the
+        residual after the per-row means, the per-view offsets and the drift
+        terms is weighted as in the fit. 1 for the constant tilt of
+        :attr:`estimate`, more for poses the row sums agree with less. A
+        rotation of the sample itself (the gauge) changes it only to second
+        order (the per-row means take it up).
+        """
+        rv = np.asarray(rotvecs, dtype=np.float64)
+        if rv.shape != (self._n_views, 3):
+            raise InitError(f"rotvecs must have shape {(self._n_views, 3)}, got {rv.shape}")
+        roll = -np.sum(rv * self._ray, axis=1)
+        pitch = -np.sum(rv * self._u, axis=1)
+        z = _double_centre(self._m - roll[:, None] * self._dU + pitch[:, None] * self._dW)[:, self._keep].ravel()
+        sw = np.sqrt(self._w)
+        D = self._drift
+        r = z - D @ np.linalg.lstsq(D * sw[:, None], z * sw, rcond=None)[0]
+        return float(np.sum(self._w * r * r)) / self._ss if self._ss > 0 else float("inf")
+
+
 def estimate_axis_tilt(projections, geom: VectorGeometry, *, offset_px: float = 0.0) -> AxisTiltEstimate:
     """The rotation axis's constant tilt from the row sums of a parallel-beam scan (module docstring).
 
@@ -223,69 +335,7 @@ def estimate_axis_tilt(projections, geom: VectorGeometry, *, offset_px: float = 
         Not a parallel scan about one axis, too few views or rows, or no
         signal (a featureless or empty scan).
     """
-    _check_geometry(geom)
-    p = np.asarray(projections)
-    nv, nr, nc = geom.n_views, *geom.det_shape
-    if p.shape != (nv, nr, nc):
-        raise InitError(f"projections must have shape {(nv, nr, nc)}, got {p.shape}")
-    if nr < 3 * _EDGE_ROWS:
-        raise InitError(f"the row sums need at least {3 * _EDGE_ROWS} detector rows, got {nr}")
-    a = np.arange(nc, dtype=np.float64) - (nc - 1) / 2 - float(offset_px)
-    m = np.empty((nv, nr))
-    U = np.empty((nv, nr))
-    bad = [k for k in range(nv) if not np.all(np.isfinite(p[k]))]
-    if bad:
-        raise InitError(f"the projections hold NaN or Inf values (views {bad[:5]}{' ...' if len(bad) > 5 else ''})")
-    sigma = float(np.sqrt(estimate_noise_variance(p)))
-    for k in range(nv):  # one view at a time: no float64 copy of the whole stack
-        pk = _without_zingers(np.asarray(p[k], dtype=np.float64), sigma)
-        m[k] = pk.sum(1)
-        U[k] = pk @ a
-    keep = slice(_EDGE_ROWS, nr - _EDGE_ROWS)
-    dz = _register(m, keep)
-    m = np.stack([_shift(m[k], -dz[k], order=3, mode="nearest") for k in range(nv)])
-    U = np.stack([_shift(U[k], -dz[k], order=3, mode="nearest") for k in range(nv)])
-    uu, rr = _unit(geom.u), _unit(geom.ray)
-    coef = _row_moments(U, uu)
-    U_fit = np.column_stack([uu[:, 0], uu[:, 1], np.ones(nv)]) @ coef
-    spread = float(np.sum((U - U.mean(0))[:, keep] ** 2))
-    moments_fit = 1.0 - float(np.sum((U - U_fit)[:, keep] ** 2)) / spread if spread > 0 else 0.0
-    # derivatives along the rows of the profiles smoothed by a Gaussian, and the profiles smoothed the same way: the
-    # first-order relation holds for the smoothed profiles exactly, and the Gaussian's derivative is exact where a
-    # finite difference of sharp profiles is not (central differences of a foam's 2-4 px cells overestimated the
-    # tilt by 25 %)
-    dU = _gaussian(U_fit, _SMOOTH_ROWS, axis=1, order=1)
-    dW = _gaussian(rr[:, :2] @ coef[:2], _SMOOTH_ROWS, axis=1, order=1)
-    dM = _gaussian(m.mean(0), _SMOOTH_ROWS, order=1)
-    m = _gaussian(m, _SMOOTH_ROWS, axis=1)
-    t = np.linspace(-1.0, 1.0, nv)[:, None]
-    # roll, pitch, and what the registration left of a vertical drift (a quadratic in time)
-    # (a drift constant in time is a per-row mean, which the double centring removes)
-    cols = [dU, -dW, -t * dM[None, :], -(t * t) * dM[None, :]]
-    X = np.column_stack([_double_centre(c)[:, keep].ravel() for c in cols])
-    y = _double_centre(m)[:, keep].ravel()
-    if not np.any(X[:, :2]):
-        raise InitError("the row sums hold no signal for the tilt (an empty or featureless scan)")
-    w = np.ones_like(y)
-    for _ in range(4):
-        sw = np.sqrt(w)
-        beta, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
-        res = y - X @ beta
-        w = _robust_weights(res)
-    dof = max(int(np.sum(w > 0)) - X.shape[1], 1)
-    s2 = float(np.sum(w * res * res)) / dof
-    N = (X * w[:, None]).T @ X
-    try:
-        cov = s2 * np.linalg.inv(N)
-    except np.linalg.LinAlgError as exc:
-        raise InitError("the row sums cannot tell the tilt from a vertical drift (singular fit)") from exc
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    res0 = y - X[:, 2:] @ np.linalg.lstsq(X[:, 2:] * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
-    ss0, ss1 = float(np.sum(w * res0 * res0)), float(np.sum(w * res * res))
-    explained = 1.0 - ss1 / ss0 if ss0 > 0 else 0.0
-    est = AxisTiltEstimate(roll=float(beta[0]), pitch=float(beta[1]), roll_sd=float(sd[0]), pitch_sd=float(sd[1]),
-                           shifts_px=dz, explained=float(explained), moments_fit=float(moments_fit),
-                           n_rows=nr - 2 * _EDGE_ROWS)
+    est = RowSumConsistency(projections, geom, offset_px=offset_px).estimate
     log.debug("row sums: roll %.4f° ± %.4f°, pitch %.4f° ± %.4f°, %.0f%% of the inconsistency explained",
               np.rad2deg(est.roll), np.rad2deg(est.roll_sd), np.rad2deg(est.pitch), np.rad2deg(est.pitch_sd),
               100 * est.explained)

@@ -96,6 +96,8 @@ def build_report(out, result, *, projections, angles, params_lab, inputs=()):
         summary["coarse axis offset (px)"] = result.initial_offset_px
     if "axis_tilt" in (getattr(result, "options", None) or {}):
         summary["coarse axis tilt (row sums of the views)"] = result.options["axis_tilt"]
+    if "row_sums_guard" in (getattr(result, "options", None) or {}):
+        summary["row sums' guard on the rounds"] = result.options["row_sums_guard"]
     fitted = any(h.get("background", -1) >= 0 for h in (getattr(result, "history", None) or ()))
     for when, d in zip(("nominal", "returned"), getattr(result, "residual", ())):
         # the diagnosis is of the data against the volume: a background the correlation fitted is still in it
