@@ -13,6 +13,8 @@
   per-view poses; in parallel beam :func:`estimate_axis_tilt` measures the
   axis's tilt, along the beam too, from the row sums of the views (no
   reconstruction), and :func:`tilt_poses` turns it into poses;
+  :class:`RowSumConsistency` scores any per-view poses against those row
+  sums (the half turns' guard of :func:`run_stages`);
 * :func:`compare_models` scores motion models (:data:`MODELS`) on views
   they were not fitted to: the default recipe's automatic model choice;
   :func:`cross_validated_misfit` compares finished calibrations by how well

@@ -221,7 +221,8 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     if geom.kind == "parallel" and tilts:  # method.md §5.15: the rounds creep along it, stop where its bias leaves them
         note += ("; the axis's tilt along the beam is weakly determined too: where the model frees it, the rounds "
                  "walk along it (docs/method.md §5.15); they start from the tilt that the views' row sums measure without a "
-                 "reconstruction where it stands out of the noise (§5.30; not with init = \"none\")")
+                 "reconstruction where it stands out of the noise (§5.30; not with init = \"none\"), and a stage stops "
+                 "where its rounds walk the tilt away from what the row sums say (§5.31)")
     return dict(model, reconstruct="nonneg_ls"), note
 
 
