@@ -270,11 +270,19 @@ def test_the_guard_stops_the_walk_along_the_pitch_of_a_half_turn(monkeypatch):
     pts = sample_points(vg, 5, fraction=0.6)
     truth = geom.apply_poses(*fix_gauge(*tilted_axis_poses(HALF, tilt=tilt, tilt_azimuth=az, offset=(2.5, 0.0, 0.0)),
                                         geom, center=vg.offset))
-    res = pdvc.calibrate(p, geom, vg)
+    states = []
+    res = pdvc.calibrate(p, geom, vg, checkpoint=states.append)
     err = reprojection_error(res.geometry, truth, pts).rms
     assert res.status == Status.ROW_SUMS_GUARD and res.success, res.message
     assert err < 0.015, err
     assert res.options["row_sums_guard"].startswith("on: ")
+    # a run resumed after its warm-up is guarded too, and ends where the uninterrupted one did
+    after_warmup = next(s for s in states if s["stage_index"] == 1 and s["rounds_done"] == 0)
+    from pdvc.calibration import calibrate
+
+    again = calibrate(p, geom, vg, resume=after_warmup)
+    assert again.status == Status.ROW_SUMS_GUARD and again.options["row_sums_guard"].startswith("on: ")
+    assert_allclose(again.poses.rotvecs, res.poses.rotvecs, atol=1e-6)
     monkeypatch.setattr(_driver, "ROW_SUMS_TOL", np.inf)  # the same run without the guard walks on
     free = pdvc.calibrate(p, geom, vg)
     assert free.status != Status.ROW_SUMS_GUARD
@@ -284,11 +292,10 @@ def test_the_guard_stops_the_walk_along_the_pitch_of_a_half_turn(monkeypatch):
 def test_the_guard_is_on_for_half_turns_of_samples_inside_the_field_only(half_turn):
     geom, p = half_turn
     rs = RowSumConsistency(p, geom, offset_px=2.5)
-    assert _row_sums_guard(rs, "roll ...", geom, False)[0] is rs
-    for args, why in [((rs, "roll ...", _geom(FULL), False), "opposite views"),
-                      ((rs, "roll ...", geom, True), "region-of-interest"),
-                      ((None, "roll ...", geom, False), "not sinusoidal")]:
+    assert _row_sums_guard(rs, True, geom, False)[0] is rs
+    for args, why in [((rs, True, _geom(FULL), False), "opposite views"),
+                      ((rs, True, geom, True), "region-of-interest"),
+                      ((None, True, geom, False), "not sinusoidal")]:
         guard, text = _row_sums_guard(*args)
         assert guard is None and text.startswith("off: ") and why in text, text
-    assert _row_sums_guard(None, "", geom, False) == (None, "")  # cone beam: nothing measured, nothing said
-    assert _row_sums_guard(None, "not measured: ...", geom, False) == (None, "")
+    assert _row_sums_guard(None, False, geom, False) == (None, "")  # cone beam, or no signal: nothing said

@@ -461,9 +461,12 @@ def calibrate(
     p, air_text = _air(air, p, timings)  # before the coarse initialisation: a column profile biases opposite views
     poses, history, start, offset_px = _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timings,
                                               stage_list[0].scale)
-    # a run the coarse initialisation started (not a resumed one, nor the user's poses) measures the tilt too
-    tilt, tilt_text, row_sums = (_tilt_init(p, geom, offset_px, timings) if offset_px is not None and not resume
-                                 and initial_poses is None else (None, "", None))
+    # the row sums of a parallel scan whose axis offset is known: the stages start from their tilt where the coarse
+    # initialisation started the run (not a resumed one), and they guard the rounds of a half turn (a resumed run too)
+    tilt, tilt_text, row_sums = _tilt_init(p, geom, offset_px, timings) if offset_px is not None else (None, "", None)
+    measured = bool(tilt_text) and not tilt_text.startswith("not measured")
+    if resume:
+        tilt, tilt_text = None, ""  # the poses are the checkpoint's
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
     emit(dict(event="reconstruct", what="nominal"))
     vol_initial = reconstruct(p, vol_geom, geom)
@@ -471,10 +474,10 @@ def calibrate(
     gamma2 = float(noise_variance) if noise_variance is not None else estimate_noise_variance(p)
     weights, trunc = _truncation(truncation, weights, None if air == "auto" else p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
+    lateral = roi == "on" or (trunc is not None and trunc.lateral)
     if tilt is not None:
-        lateral = roi == "on" or (trunc is not None and trunc.lateral)
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
-    row_sums, guard_text = _row_sums_guard(row_sums, tilt_text, geom, roi == "on" or (trunc is not None and trunc.lateral))
+    row_sums, guard_text = _row_sums_guard(row_sums, measured, geom, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
@@ -895,14 +898,14 @@ def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
             f"{what}: the stages started from this tilted axis")
 
 
-def _row_sums_guard(row_sums, tilt_text: str, geom, lateral: bool):
-    """(The row sums the stages' guard reads, or None; what the report says of it, "" where none were measured).
+def _row_sums_guard(row_sums, measured: bool, geom, lateral: bool):
+    """(The row sums the stages' guard reads, or None; what the report says of it, "" where none were ``measured``).
 
     The guard (``run_stages(row_sums=...)``, ``docs/method.md`` §5.31) stops the walk along the pitch of a scan
     without opposite views; a full turn settles the tilt itself, and a sample wider than the volume leaves the rows'
     moments short of what lies outside the field.
     """
-    if not tilt_text or tilt_text.startswith("not measured"):
+    if not measured:
         return None, ""
     why = ("the rows' first moments are not sinusoidal enough" if row_sums is None
            else "the sample reaches the sides of the volume (a region-of-interest scan)" if lateral
