@@ -276,6 +276,10 @@ def test_the_guard_stops_the_walk_along_the_pitch_of_a_half_turn(monkeypatch):
     assert res.status == Status.ROW_SUMS_GUARD and res.success, res.message
     assert err < 0.015, err
     assert res.options["row_sums_guard"].startswith("on: ")
+    # the history holds the misfit of the rounds the guard read; the last one rose more than ROW_SUMS_TOL above the
+    # lowest, whose poses are those returned
+    read = [h["row_sums_misfit"] for h in res.history if "row_sums_misfit" in h]
+    assert len(read) >= 2 and read[-1] > (1 + _driver.ROW_SUMS_TOL) * min(read[:-1]), read
     # a run resumed after its warm-up is guarded too, and ends where the uninterrupted one did
     after_warmup = next(s for s in states if s["stage_index"] == 1 and s["rounds_done"] == 0)
     from pdvc.calibration import calibrate

@@ -579,10 +579,10 @@ class _StageRun:
             inc, inc_max = float(np.sqrt(np.mean(d**2))), float(d.max())
             prev_poses, prev_kept = self.poses, self.kept
             self.poses, self.kept = new, res
-            self._record(r, res, chi_before, entropy, inc, inc_max, extrapolated=jumped is not None)
-            if self.ctx.row_sums is not None and (self.rs_best is not None or inc < ROW_SUMS_CREEP * st.tol_px):
-                rs = self.ctx.row_sums.misfit(new.rotvecs)
-                log.debug("round %d: the row sums' misfit %.5g", r, rs)
+            guarded = self.ctx.row_sums is not None and (self.rs_best is not None or inc < ROW_SUMS_CREEP * st.tol_px)
+            rs = self.ctx.row_sums.misfit(new.rotvecs) if guarded else None
+            self._record(r, res, chi_before, entropy, inc, inc_max, extrapolated=jumped is not None, row_sums=rs)
+            if guarded:
                 if self.rs_best is None or rs < self.rs_best[0]:
                     self.rs_best = (rs, new, res, r)
                 elif rs > self.rs_best[0] * (1 + ROW_SUMS_TOL):
@@ -682,7 +682,7 @@ class _StageRun:
             background=stage_background(st, ctx.auto_background), robust=st.robust,
         )
 
-    def _record(self, r, res, chi_before, entropy, inc, inc_max, extrapolated=False):
+    def _record(self, r, res, chi_before, entropy, inc, inc_max, extrapolated=False, row_sums=None):
         st = self.stage
         entry = dict(
             iteration=len(self.history), stage=st.name, stage_index=self.index, scale=st.scale, round=r, chi_before=chi_before,
@@ -692,12 +692,15 @@ class _StageRun:
             background=-1 if res.background is None else int(res.background), offset_sigma=self.offset_sigma,
             model=model_name(st), extrapolated=bool(extrapolated),
         )
+        if row_sums is not None:  # the row sums' misfit of the round's poses, where the guard read it
+            entry["row_sums_misfit"] = float(row_sums)
         choice = self.ctx.model_choice
         if st.candidates and choice is not None and not any("model_choice" in h for h in self.history):
             entry["model_choice"] = choice.to_dict()  # saved with the stage's first round: a resumed run keeps the choice
         self.history.append(entry)
         self.n_rounds += 1
-        log.info("stage %s round %d: chi %.5g -> %.5g, increment %.3g px", st.name, r, chi_before, entry["chi_after"], inc)
+        log.info("stage %s round %d: chi %.5g -> %.5g, increment %.3g px%s", st.name, r, chi_before, entry["chi_after"], inc,
+                 f", the row sums' misfit {row_sums:.5g}" if row_sums is not None else "")
         if self.checkpoint is not None:  # saved before anything is reported: a Ctrl-C in a callback loses no round
             self.checkpoint(dict(poses=self.poses, history=[dict(h) for h in self.history], stage_index=self.index, rounds_done=r + 1))
         if self.progress is not None:

@@ -72,12 +72,16 @@ def build_report(out, result, *, projections, angles, params_lab, inputs=()):
             [(o.name, str(o.scale), str(o.rounds), str(o.status), f"{o.elapsed_s:.1f}") for o in result.stage_outcomes],
         )
     if result.history:
+        # the row sums' misfit where the half turns' guard read it (docs/method.md §5.31)
+        guarded = any("row_sums_misfit" in h for h in result.history)
         tables["rounds"] = (
-            ("stage", "scale", "round", "chi before", "chi after", "increment (px)"),
+            ("stage", "scale", "round", "chi before", "chi after", "increment (px)")
+            + (("row sums' misfit",) if guarded else ()),
             [
                 (str(h.get("stage", "")), str(h.get("scale", "")),
                  str(h.get("round", "")) + (" (extrapolated start)" if h.get("extrapolated") else ""), f"{h.get('chi_before', np.nan):.4g}",
                  f"{h.get('chi_after', np.nan):.4g}", f"{h.get('increment_px', np.nan):.3g}")
+                + ((f"{h['row_sums_misfit']:.5g}" if "row_sums_misfit" in h else "",) if guarded else ())
                 for h in result.history
             ],
         )

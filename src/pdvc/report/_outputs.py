@@ -300,7 +300,8 @@ def _write_volume(out: Path, stem: str, vol: np.ndarray, fmt: str, vol_geom) -> 
 
 
 def _result_tree(result, params, params_lab, angles, config) -> dict:
-    hist_keys = ("stage_index", "scale", "iteration", "round", "chi_before", "chi_after", "snr", "increment_px", "elapsed_s")
+    hist_keys = ("stage_index", "scale", "iteration", "round", "chi_before", "chi_after", "snr", "increment_px", "elapsed_s",
+                 "row_sums_misfit")
     tree = {
         "gauge": result.gauge,
         "status": int(result.status),
