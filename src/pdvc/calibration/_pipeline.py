@@ -464,7 +464,6 @@ def calibrate(
     # the row sums of a parallel scan whose axis offset is known: the stages start from their tilt where the coarse
     # initialisation started the run (not a resumed one), and they guard the rounds of a half turn (a resumed run too)
     tilt, tilt_text, row_sums = _tilt_init(p, geom, offset_px, timings) if offset_px is not None else (None, "", None)
-    measured = bool(tilt_text) and not tilt_text.startswith("not measured")
     if resume:
         tilt, tilt_text = None, ""  # the poses are the checkpoint's
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
@@ -477,7 +476,7 @@ def calibrate(
     lateral = roi == "on" or (trunc is not None and trunc.lateral)
     if tilt is not None:
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
-    row_sums, guard_text = _row_sums_guard(row_sums, measured, geom, lateral)
+    row_sums, guard_text = _row_sums_guard(row_sums, geom, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
@@ -843,7 +842,7 @@ TILT_INIT_MIN_MOMENTS_FIT = 0.7
 
 def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
     """(The axis's tilt from the row sums when it is usable, else None; what they said, "" in cone beam; the row sums'
-    :class:`RowSumConsistency` for the guard when their moments are sinusoidal, else None).
+    :class:`RowSumConsistency` where they were measured, else None).
 
     :func:`pdvc.calibration.estimate_axis_tilt`, its time added to ``timings["init"]``; whether the stages start
     from it is :func:`_with_tilt`'s decision, once the nominal reconstruction has shown the sample.
@@ -865,7 +864,6 @@ def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
         if timings is not None:
             timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
     est = rs.estimate
-    guard = rs if est.moments_fit >= TILT_INIT_MIN_MOMENTS_FIT else None
     what = est.describe()
     if (est.significance < TILT_INIT_MIN_SIGNIFICANCE or est.tilt_deg > TILT_INIT_MAX_DEG
             or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT):
@@ -873,9 +871,9 @@ def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
                 f"{TILT_INIT_MAX_DEG:g}° and {100 * TILT_INIT_MIN_MOMENTS_FIT:.0f}% sinusoidal moments); the stages started "
                 "from the untilted axis")
         log.info("axis tilt from the row sums %s", text)
-        return None, text, guard
+        return None, text, rs
     log.info("coarse initialisation: axis tilt from the row sums: %s", what)
-    return est, what, guard
+    return est, what, rs
 
 
 def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
@@ -898,16 +896,17 @@ def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
             f"{what}: the stages started from this tilted axis")
 
 
-def _row_sums_guard(row_sums, measured: bool, geom, lateral: bool):
-    """(The row sums the stages' guard reads, or None; what the report says of it, "" where none were ``measured``).
+def _row_sums_guard(row_sums, geom, lateral: bool):
+    """(The row sums the stages' guard reads, or None; what the report says of it, "" where none were measured).
 
     The guard (``run_stages(row_sums=...)``, ``docs/method.md`` §5.31) stops the walk along the pitch of a scan
     without opposite views; a full turn settles the tilt itself, and a sample wider than the volume leaves the rows'
     moments short of what lies outside the field.
     """
-    if not measured:
+    if row_sums is None:
         return None, ""
-    why = ("the rows' first moments are not sinusoidal enough" if row_sums is None
+    why = ("the rows' first moments are not sinusoidal enough"
+           if row_sums.estimate.moments_fit < TILT_INIT_MIN_MOMENTS_FIT
            else "the sample reaches the sides of the volume (a region-of-interest scan)" if lateral
            else "the scan has opposite views, whose rounds settle the tilt"
            if opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION else "")

@@ -294,8 +294,10 @@ class RowSumConsistency:
         residual after the per-row means, the per-view offsets and the drift
         terms is weighted as in the fit. 1 for the constant tilt of
         :attr:`estimate`, more for poses the row sums agree with less. A
-        rotation of the sample itself (the gauge) changes it only to second
-        order (the per-row means take it up).
+        rotation of the sample itself (the gauge) does not change it: the
+        per-row means take it up, as the roll's regressor is the sinusoidal
+        part of the rows' first moments only (a rotation about the axis the
+        moments locate).
         """
         rv = np.asarray(rotvecs, dtype=np.float64)
         if rv.shape != (self._n_views, 3):
