@@ -221,8 +221,8 @@ def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tup
     if geom.kind == "parallel" and tilts:  # method.md §5.15: the rounds creep along it, stop where its bias leaves them
         note += ("; the axis's tilt along the beam is weakly determined too: where the model frees it, the rounds "
                  "walk along it (docs/method.md §5.15); they start from the tilt that the views' row sums measure without a "
-                 "reconstruction where it stands out of the noise (§5.30; not with init = \"none\"), and a stage stops "
-                 "where its rounds walk the tilt away from what the row sums say (§5.31)")
+                 "reconstruction where it stands out of its uncertainty (§5.30, §5.32; not with init = \"none\"), and a stage "
+                 "stops where its rounds walk the tilt away from what the row sums say, if they hold it well (§5.31)")
     return dict(model, reconstruct="nonneg_ls"), note
 
 
@@ -832,12 +832,17 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
     return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px)
 
 
-# the row sums' tilt is used to start from when it stands this many standard deviations above 0, is at most this
-# large (the linearisation), and the rows' first moments are the sinusoids the method assumes (the whole sample
-# across the detector's width)
-TILT_INIT_MIN_SIGNIFICANCE = 8.0
+# the row sums' tilt is used to start from when it stands this many standard deviations above 0 (the standard
+# deviations of a residual correlated along views and rows, AxisTiltEstimate.sd_inflation: docs/method.md §5.32), is
+# at most this large (the linearisation), and the rows' first moments are the sinusoids the method assumes (the whole
+# sample across the detector's width)
+TILT_INIT_MIN_SIGNIFICANCE = 5.0
 TILT_INIT_MAX_DEG = 3.0
 TILT_INIT_MIN_MOMENTS_FIT = 0.7
+# the row sums' guard is on only where they hold the tilt to this many pixels at the detector's top and bottom rows
+# (the larger standard deviation of roll and pitch times half the detector's height): a rod's row sums, with little
+# off the axis to tilt, hold it to 0.12-0.31 px at 40 rows and read a drift with acceleration as a tilt (§5.32)
+ROW_SUMS_MAX_SD_PX = 0.1
 
 
 def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
@@ -896,17 +901,29 @@ def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
             f"{what}: the stages started from this tilted axis")
 
 
+def _row_sums_sd_px(est, geom) -> float:
+    """How well the row sums hold the axis's tilt, pixels: the larger of its standard deviations times half the detector's height."""
+    return float(max(est.roll_sd, est.pitch_sd) * (geom.det_shape[0] - 1) / 2)
+
+
 def _row_sums_guard(row_sums, geom, lateral: bool):
     """(The row sums the stages' guard reads, or None; what the report says of it, "" where none were measured).
 
     The guard (``run_stages(row_sums=...)``, ``docs/method.md`` §5.31) stops the walk along the pitch of a scan
-    without opposite views; a full turn settles the tilt itself, and a sample wider than the volume leaves the rows'
-    moments short of what lies outside the field.
+    without opposite views; a full turn settles the tilt itself, a sample wider than the volume leaves the rows'
+    moments short of what lies outside the field, and row sums that hold the tilt to more than
+    ``ROW_SUMS_MAX_SD_PX`` (a rod's, with little off the axis; a drift they read as a tilt) would stop the rounds on
+    their own error (§5.32).
     """
     if row_sums is None:
         return None, ""
+    est = row_sums.estimate
+    sd_px = _row_sums_sd_px(est, geom)
     why = ("the rows' first moments are not sinusoidal enough"
-           if row_sums.estimate.moments_fit < TILT_INIT_MIN_MOMENTS_FIT
+           if est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT
+           else f"the row sums hold the tilt to ±{sd_px:.2f} px only, over {ROW_SUMS_MAX_SD_PX:g} px "
+                "(too little structure off the axis, or model error: docs/method.md §5.32)"
+           if sd_px > ROW_SUMS_MAX_SD_PX
            else "the sample reaches the sides of the volume (a region-of-interest scan)" if lateral
            else "the scan has opposite views, whose rounds settle the tilt"
            if opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION else "")
