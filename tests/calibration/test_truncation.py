@@ -107,6 +107,25 @@ def test_jolt_views_finds_local_dips_not_smooth_trends():
     assert jolt_views(smooth[:5]).size == 0
 
 
+def test_jolt_views_finds_the_broad_v_of_a_jolt_a_smooth_model_took_up():
+    """A jolt the drift basis took up: the views fit worse toward it over tens of views and better after it (a V with a
+    kink at the jolt), and the model's overshoot beside it makes shallower Vs. Only the jolt's kink stands out; the
+    7-view median test sees none of it."""
+    from pdvc.calibration import jolt_views
+
+    rng = np.random.default_rng(2)
+    k = np.arange(120)
+    smooth = 32 + 1.0 * np.cos(2 * np.pi * k / 120) + rng.normal(0, 0.05, 120)
+    v = smooth - np.clip(10.0 - 0.5 * np.abs(k - 29), 0.0, None)  # 10 dB at view 29, back to the rest 20 views away
+    v -= 1.2 * np.exp(-0.5 * ((k - 60) / 4.0) ** 2)  # the overshoot: a 1.2 dB trough of its own
+    assert jolt_views(v, kink_window=0).size == 0  # the median test alone misses it
+    assert jolt_views(v).tolist() == [29]
+    assert jolt_views(smooth).size == 0
+    # two jolts, the second a third as deep as the first or more: both
+    two = v - np.clip(5.0 - 0.4 * np.abs(k - 90), 0.0, None)
+    assert jolt_views(two).tolist() == [29, 90]
+
+
 def test_a_few_wild_pixels_make_no_jolt_once_each_view_drops_its_largest_residuals():
     """A zinger left in one view makes its SNR dip as a jolt does; without each view's largest residuals it does not.
     A jolt misplaces every edge of its views (here: a third of the pixels off by 2 std), and still dips."""

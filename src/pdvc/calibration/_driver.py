@@ -159,7 +159,8 @@ def stage_background(stage: Stage, decided):
     return None if stage.background < 0 else int(stage.background)
 
 
-def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0) -> np.ndarray:
+def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: float = 1.0, kink_window: int = 5,
+               min_kink_db: float = 0.2) -> np.ndarray:
     """Views whose SNR dips below their neighbours': where a smooth model missed a jolt.
 
     The dip of view k is the median SNR of the ``window`` views around it
@@ -167,6 +168,21 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
     above ``z`` times the view-to-view scatter of the SNR (1.4826 MAD of the
     differences between neighbours, over √2) and above ``min_drop_db``. A smooth dependence of the SNR on the angle (an
     elongated sample) is no dip.
+
+    A jolt that the smooth model took up as a drift leaves no such dip but a
+    broad V: the model passes through the middle of the step, so the views
+    fit worse and worse toward the jolt and better after it, over tens of
+    views (a rod's 1.4 px jolt at view 29 of 120: 32 dB far from it, 22 dB
+    at view 28). Its minimum is a kink: the SNR's slope over the
+    ``kink_window`` views after a view minus that over the views before is
+    above ``z`` times its noise (from the same scatter) and ``min_kink_db``
+    per view, the view is the lowest of the ``2 kink_window + 1`` around it,
+    lies ``min_drop_db`` below the mean of the two ends, and below the
+    scan's median SNR by a third of the deepest such V at least. A smooth
+    dependence on the angle turns gently; the troughs of a full turn's SNR
+    with the angle do not, and the stages use this rule on scans without
+    opposite views only (``kink_window=0`` leaves it out; ``docs/method.md``
+    §5.33).
     """
     s = np.asarray(snr_per_view, float)
     n = s.size
@@ -178,7 +194,22 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
     sigma = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)
     if not sigma > 0:
         return np.array([], int)
-    return np.nonzero((dip > z * sigma) & (dip > min_drop_db))[0]
+    found = (dip > z * sigma) & (dip > min_drop_db)
+    w = int(kink_window)
+    if w >= 2 and n >= 2 * w + 1:
+        x = np.arange(w + 1) - w / 2
+        slope = np.lib.stride_tricks.sliding_window_view(s, w + 1) @ (x / (x @ x))  # slope[j]: of s[j : j + w + 1]
+        k = np.arange(w, n - w)
+        kink = slope[k] - slope[k - w]  # after view k minus before it (both windows hold k)
+        lowest = s[k] <= np.lib.stride_tricks.sliding_window_view(s, 2 * w + 1).min(axis=1)
+        depth = 0.5 * (s[k - w] + s[k + w]) - s[k]
+        hit = lowest & (kink > z * sigma * np.sqrt(2.0 / (x @ x))) & (kink > min_kink_db) & (depth > min_drop_db)
+        # below the scan's median SNR by a third of the deepest such V at least: the smooth model's overshoot beside a
+        # jolt it took up makes shallower Vs of its own (1.0-1.6 dB beside the 10 dB one above)
+        below = float(np.median(s)) - s[k]
+        if hit.any():
+            found[k[hit & (below >= max(min_drop_db, below[hit].max() / 3))]] = True
+    return np.nonzero(found)[0]
 
 
 #: the row sums' guard (``run_stages(row_sums=...)``): once a stage's rounds creep (a round moved the sample points by
@@ -509,7 +540,7 @@ class _StageRun:
         st = self.stage
         status = Status.ROUNDS_DONE if st.until == "rounds" else Status.MAX_ITER
         if isinstance(st.basis, str) and st.basis == JOLT_BASIS:
-            views = jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
+            views = self._jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
             if views.size:
                 views = self._jolts_confirmed(views)
             if views.size == 0:
@@ -649,6 +680,13 @@ class _StageRun:
         self.ent_best = entropy if self.ent_best is None else min(self.ent_best, entropy)
         return entropy, False
 
+    def _jolt_views(self, snr: np.ndarray) -> np.ndarray:
+        """:func:`jolt_views`, the kink of a broad V on scans without opposite views only: there a smooth model takes a
+        jolt up as a drift; a full turn's opposite views hold the jump, and its SNR's troughs with the angle (a
+        sample's faces, a precession twice a turn) made kinks of their own (``docs/method.md`` §5.33)."""
+        short = opposite_fraction(self.ctx.geom) < SHORT_SCAN_OPPOSITE_FRACTION
+        return jolt_views(snr) if short else jolt_views(snr, kink_window=0)
+
     def _jolts_confirmed(self, views: np.ndarray) -> np.ndarray:
         """The views whose SNR still dips without their largest residuals (:func:`trimmed_snr`), against the volume the
         stage's first round then reuses."""
@@ -656,7 +694,7 @@ class _StageRun:
         p, g, vg, w, _ = ctx.at_scale(st.scale)
         self.volume = (self.poses, ctx.stage_volume(st, self.poses))
         res = p - forward(self.volume[1], refined_grid(vg, st.oversample), g.apply(self.poses), backend=ctx.backend)
-        kept = jolt_views(trimmed_snr(p, res, w))
+        kept = self._jolt_views(trimmed_snr(p, res, w))
         if kept.size < views.size:
             log.info("stage %s: views %s dip in SNR; without each view's %.2g %% largest residuals %s", st.name,
                      views.tolist(), 100 * JOLT_TRIM, f"only {kept.tolist()} do" if kept.size else "none does (outlier pixels)")

@@ -72,7 +72,8 @@ class Stage:
         = {1, t, t², cos θ, sin θ}). Only names can be written to a config.
         ``"jolt_steps"``: the ``drift`` basis plus a step starting at each
         view whose fit stays poor after the previous stages (a local dip of
-        its SNR: :func:`pdvc.calibration.jolt_views`) and at its two
+        its SNR, or the kink of a broad V where the smooth model took a jolt
+        up: :func:`pdvc.calibration.jolt_views`) and at its two
         neighbours; the stage is skipped when no view stands out. Only those
         views are freed.
     frame : {"sample", "lab"}
