@@ -29,7 +29,8 @@ The method and the reasons behind each default: ``docs/method.md``.
 
 from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
-from ._driver import DriverResult, StageOutcome, correlation_volume, jolt_views, reconstruct, refined_grid, run_stages
+from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps, jolt_views, reconstruct, refined_grid,
+                      run_stages)
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._rowsums import AxisTiltEstimate, RowSumConsistency, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
@@ -82,6 +83,7 @@ __all__ = [
     "short_scan_reconstruction",
     "run_stages",
     "jolt_views",
+    "jolt_steps",
     "jolt_stage",
     "refine_stage",
     "DriverResult",

@@ -58,7 +58,7 @@ NONNEG_SUBSET_VIEWS = 30
 NONNEG_MAX_SUBSETS = 3
 
 __all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
-           "jolt_views"]
+           "jolt_views", "jolt_steps"]
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -210,6 +210,84 @@ def jolt_views(snr_per_view, *, window: int = 7, z: float = 5.0, min_drop_db: fl
         if hit.any():
             found[k[hit & (below >= max(min_drop_db, below[hit].max() / 3))]] = True
     return np.nonzero(found)[0]
+
+
+#: jolts are also found as steps in each view's position measured on its own (free lab translations across the beam
+#: and up) against the smooth model's last volume: a step of JOLT_STEP_MIN voxels at least that stands JOLT_STEP_Z times above
+#: its noise, a line and a step fitted over JOLT_STEP_WINDOW views each side (docs/method.md §5.34)
+JOLT_STEP_WINDOW = 6
+JOLT_STEP_Z = 8.0
+JOLT_STEP_MIN = 0.15
+JOLT_STEP_MAX = 16
+
+
+def _step_scores(x: np.ndarray, sigma: np.ndarray, window: int, skip: tuple = (), known=()) -> tuple[np.ndarray, np.ndarray]:
+    """(z, size) of a step at each view k (views >= k moved): a line and a step fitted by least squares to the
+    ``window`` views on each side, leaving out the views at offsets ``skip`` from k, with the steps at the ``known``
+    views fitted as well; z = √Σ (step / its std)² over the components, each of noise ``sigma``."""
+    n = x.shape[0]
+    z, size = np.zeros(n), np.zeros(x.shape)
+    for k in range(2, n - 1):
+        if k in known:
+            continue
+        idx = np.array([i for i in range(max(0, k - window), min(n, k + window)) if i - k not in skip])
+        after = idx >= k
+        if after.sum() < 2 or (~after).sum() < 2:
+            continue
+        cols = [np.ones(idx.size), idx - k + 0.5, after.astype(float)]
+        for j in known:  # a known step in the window: fitted with this one, not taken for a part of it
+            c = (idx >= j).astype(float)
+            if 0 < c.sum() < idx.size and not any(np.array_equal(c, q) for q in cols[2:]):
+                cols.append(c)
+        a = np.column_stack(cols)
+        coef = np.linalg.lstsq(a, x[idx], rcond=None)[0]
+        var = float(np.linalg.pinv(a.T @ a)[2, 2])
+        size[k] = coef[2]
+        z[k] = float(np.sqrt(np.sum((coef[2] / (sigma * np.sqrt(var))) ** 2)))
+    return z, size
+
+
+def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT_STEP_Z, min_step: float = JOLT_STEP_MIN,
+               max_steps: int = JOLT_STEP_MAX) -> np.ndarray:
+    """Views at which a series of per-view displacements steps: where a jolt moved the sample.
+
+    ``displacements`` (n_views, m), in acquisition order: each view's
+    position measured on its own (free per view) against the volume of a
+    smooth model, minus the model's. A jolt that the model took up as a
+    drift leaves a sawtooth there, a ramp toward the jump and a step at it
+    (a granular scan's 1.1 px jolt at view 129 of 180: +0.55 px before it,
+    −0.58 px after); a smooth model error leaves no step. At each view k a
+    line and a step (views k on moved) are fitted by least squares to the
+    ``window`` views on each side; the step stands out when its size over
+    its standard deviation, combined over the components (√Σ z²), is at
+    least ``z`` and its size at least ``min_step``. Each component's noise
+    is the series' own (1.4826 MAD of its second differences, over √6). The
+    largest such step is taken and the search repeats with the steps found
+    fitted beside each new one, up to ``max_steps`` steps; a step must also stand
+    without the two views beside it (k − 1, k), so that a single view that
+    fits poorly (a zinger left over) is not taken for one
+    (``docs/method.md`` §5.34).
+    """
+    x = np.array(displacements, dtype=float)
+    if x.ndim == 1:
+        x = x[:, None]
+    n = x.shape[0]
+    if n < 2 * window + 2 or not np.all(np.isfinite(x)):
+        return np.array([], int)
+    d2 = np.diff(x, 2, axis=0)
+    sigma = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
+    sigma = np.maximum(sigma, 1e-3 * max(float(min_step), 1e-12))  # a noise-free series: the size decides
+    found: list = []
+    for _ in range(int(max_steps)):
+        zk, size = _step_scores(x, sigma, window, known=found)
+        k = int(np.argmax(zk))
+        if zk[k] < z or np.linalg.norm(size[k]) < min_step:
+            break
+        zr, sr = _step_scores(x, sigma, window, skip=(-1, 0), known=found)
+        if zr[k] < z or np.linalg.norm(sr[k]) < min_step:
+            break  # the largest step left is one view's misfit
+        found.append(k)
+    return np.array(sorted(found), int)
 
 
 #: the row sums' guard (``run_stages(row_sums=...)``): once a stage's rounds creep (a round moved the sample points by
@@ -463,6 +541,7 @@ def run_stages(
     outcomes: list = []
     kept = None
     guard_volume = fit_volume = None
+    last = None  # (stage, (poses, volume)) of the stage before, where the next is a jolt stage (it measures views on it)
     i0, r0 = int(start[0]), int(start[1])
     for i in range(i0, len(stages)):
         stage, first, primed = stages[i], (r0 if i == i0 else 0), None
@@ -488,8 +567,11 @@ def run_stages(
                           det_shape=g_s.det_shape, volume=vg_s.shape, rounds=stage.rounds))
         # does it start from poses an earlier stage measured and kept (a warm-up's, a coarser scale's)?
         refines = any(o.status.success and o.rounds > 0 for o in outcomes)
-        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept, refines=refines, volume=primed)
+        run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept, refines=refines, volume=primed,
+                        last_volume=last)
         poses, status, res, gv = run.run(first)
+        jolts_next = i + 1 < len(stages) and isinstance(stages[i + 1].basis, str) and stages[i + 1].basis == JOLT_BASIS
+        last = (stage, run.last_volume) if jolts_next and run.last_volume is not None else None
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
         fit_volume = (poses, stage, run.volume_at_poses) if run.volume_at_poses is not None else fit_volume
@@ -514,7 +596,7 @@ class _StageRun:
     """The rounds of one stage and its stopping rules (``docs/method.md``, "Stopping")."""
 
     def __init__(self, ctx: _Context, stage: Stage, index: int, poses: Poses, history: list, checkpoint, progress, previous=None,
-                 refines=False, volume=None):
+                 refines=False, volume=None, last_volume=None):
         self.ctx, self.stage, self.index = ctx, stage, index
         self.refines = refines  # the poses it starts from were measured and kept by an earlier stage
         self.previous = previous  # the correlation kept by the stages before (a jolt stage reads its per-view fit)
@@ -530,6 +612,8 @@ class _StageRun:
         self.guard_volumes: list = []  # the entropy guard's last two volumes: a rollback keeps the one before
         self.kept = None  # the correlation whose poses are self.poses
         self.volume = volume  # (poses, correlation volume) of the current round (given: already made at ``poses``)
+        self.given_last = last_volume  # (stage, (poses, volume)): the last volume of the stage before (a jolt stage's)
+        self.last_volume = None  # (poses, volume) of this stage's last round
         self.volume_at_poses = None  # the correlation volume made at the poses the stage returns, if one was
         # the row sums' guard: (misfit, poses, correlation, round) of the round's poses they agree with best, from the
         # first round that moved the points by less than ROW_SUMS_CREEP x tol_px on (the rounds before approach the
@@ -543,6 +627,11 @@ class _StageRun:
             views = self._jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
             if views.size:
                 views = self._jolts_confirmed(views)
+            steps = self._jolt_steps()
+            if steps.size:
+                log.info("stage %s: the views' positions measured one by one step at views %s%s", st.name, steps.tolist(),
+                         "" if np.isin(steps, views).all() else f" (the SNR found {views.tolist()})")
+                views = np.union1d(views, steps).astype(int)
             if views.size == 0:
                 log.info("stage %s: no view's fit stands out: no jolt, skipped", st.name)
                 if self.progress is not None:
@@ -652,7 +741,7 @@ class _StageRun:
         gv = next((v for v in self.guard_volumes if v[0] is self.poses), None)
         made = [self.volume] + ([(self.best[1], self.best[4])] if self.best is not None else [])
         self.volume_at_poses = next((v for q, v in made if q is self.poses), None) if self.volume is not None else None
-        self.volume = None
+        self.last_volume, self.volume = self.volume, None
         return self.poses, status, self.kept, gv
 
     def _extrapolated(self, before: Poses, after: Poses, ratio: float, step, prev_step) -> tuple[Optional[Poses], float]:
@@ -686,6 +775,29 @@ class _StageRun:
         sample's faces, a precession twice a turn) made kinks of their own (``docs/method.md`` §5.33)."""
         short = opposite_fraction(self.ctx.geom) < SHORT_SCAN_OPPOSITE_FRACTION
         return jolt_views(snr) if short else jolt_views(snr, kink_window=0)
+
+    def _jolt_steps(self) -> np.ndarray:
+        """:func:`jolt_steps` of the views' positions measured one by one (free lab translations across the beam and up,
+        one Gauss-Newton step) against the last volume of the stage before, or the stage's own at its poses."""
+        st, ctx = self.stage, self.ctx
+        p, g, vg, w, gamma2 = ctx.at_scale(st.scale)
+        if self.volume is not None and self.volume[0] is self.poses:  # made at the poses (the SNR's dips confirmed)
+            made_by, vol = st, self.volume[1]
+        elif self.given_last is not None and self.given_last[0].scale == st.scale:
+            made_by, vol = self.given_last[0], self.given_last[1][1]
+        else:
+            self.volume = (self.poses, ctx.stage_volume(st, self.poses))
+            made_by, vol = st, self.volume[1]
+        self.given_last = None
+        res = correlate(
+            vol, refined_grid(vg, made_by.oversample), p, g, basis="dirac", frame="lab", fixed=("rx", "ry", "rz", "ty"),
+            method="full", center=ctx.center, weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
+            initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations, max_iter=1, accelerate=False,
+            backend=ctx.backend, background=stage_background(st, ctx.auto_background),
+        )
+        # across the beam and up, in each view's lab axes (along the beam is fixed), in voxels of the user's grid
+        d = (res.params_lab - self.poses.lab_params(g, ctx.center))[:, [0, 2]] / float(np.mean(ctx.vol_geom.voxel_size))
+        return jolt_steps(d)
 
     def _jolts_confirmed(self, views: np.ndarray) -> np.ndarray:
         """The views whose SNR still dips without their largest residuals (:func:`trimmed_snr`), against the volume the

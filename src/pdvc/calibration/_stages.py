@@ -73,9 +73,11 @@ class Stage:
         ``"jolt_steps"``: the ``drift`` basis plus a step starting at each
         view whose fit stays poor after the previous stages (a local dip of
         its SNR, or the kink of a broad V where the smooth model took a jolt
-        up: :func:`pdvc.calibration.jolt_views`) and at its two
-        neighbours; the stage is skipped when no view stands out. Only those
-        views are freed.
+        up: :func:`pdvc.calibration.jolt_views`), or at which the views'
+        positions, each measured on its own against the previous stage's
+        last volume, step (:func:`pdvc.calibration.jolt_steps`), and at its
+        two neighbours; the stage is skipped when no view stands out. Only
+        those views are freed.
     frame : {"sample", "lab"}
     fixed : tuple of str
         Parameters of ``frame`` held at zero, among ``tx ty tz rx ry rz``.
@@ -530,7 +532,8 @@ def refine_stage(model: Stage, *, scale: int, rounds: int = REFINE_ROUNDS) -> St
 
 
 def jolt_stage(model: Stage, rounds: int = 5) -> Stage:
-    """After a smooth model: a step in the lab translations at each view whose fit stays poor (a jolt).
+    """After a smooth model: a step in the lab translations at each view whose fit stays poor, or where the views'
+    positions measured one by one step (a jolt).
 
     Skipped when no view stands out. Rotations and the translation along
     the beam (a magnification change) stay fixed; it runs its rounds (a
