@@ -221,30 +221,23 @@ JOLT_STEP_MIN = 0.15
 JOLT_STEP_MAX = 16
 
 
-def _step_scores(x: np.ndarray, sigma: np.ndarray, window: int, skip: tuple = (), known=()) -> tuple[np.ndarray, np.ndarray]:
-    """(z, size) of a step at each view k (views >= k moved): a line and a step fitted by least squares to the
-    ``window`` views on each side, leaving out the views at offsets ``skip`` from k, with the steps at the ``known``
-    views fitted as well; z = √Σ (step / its std)² over the components, each of noise ``sigma``."""
+def _step_at(x: np.ndarray, sigma: np.ndarray, k: int, window: int, skip: tuple = (), known=()) -> tuple[float, np.ndarray]:
+    """(z, size) of a step at view k (views >= k moved): a line and a step fitted by least squares to the ``window``
+    views on each side, leaving out the views at offsets ``skip`` from k, with the steps at the ``known`` views fitted
+    as well; z = √Σ (step / its std)² over the components, each of noise ``sigma``. (0, 0) where it cannot be fitted."""
     n = x.shape[0]
-    z, size = np.zeros(n), np.zeros(x.shape)
-    for k in range(2, n - 1):
-        if k in known:
-            continue
-        idx = np.array([i for i in range(max(0, k - window), min(n, k + window)) if i - k not in skip])
-        after = idx >= k
-        if after.sum() < 2 or (~after).sum() < 2:
-            continue
-        cols = [np.ones(idx.size), idx - k + 0.5, after.astype(float)]
-        for j in known:  # a known step in the window: fitted with this one, not taken for a part of it
-            c = (idx >= j).astype(float)
-            if 0 < c.sum() < idx.size and not any(np.array_equal(c, q) for q in cols[2:]):
-                cols.append(c)
-        a = np.column_stack(cols)
-        coef = np.linalg.lstsq(a, x[idx], rcond=None)[0]
-        var = float(np.linalg.pinv(a.T @ a)[2, 2])
-        size[k] = coef[2]
-        z[k] = float(np.sqrt(np.sum((coef[2] / (sigma * np.sqrt(var))) ** 2)))
-    return z, size
+    idx = np.array([i for i in range(max(0, k - window), min(n, k + window)) if i - k not in skip])
+    after = idx >= k
+    if k in known or after.sum() < 2 or (~after).sum() < 2:
+        return 0.0, np.zeros(x.shape[1])
+    cols = [np.ones(idx.size), idx - k + 0.5, after.astype(float)]
+    for j in known:  # a known step in the window: fitted with this one, not taken for a part of it
+        c = (idx >= j).astype(float)
+        if 0 < c.sum() < idx.size and not any(np.array_equal(c, q) for q in cols[2:]):
+            cols.append(c)
+    row = np.linalg.pinv(np.column_stack(cols))[2]  # the step's row of the least-squares solution
+    size = row @ x[idx]
+    return float(np.sqrt(np.sum((size / (sigma * np.sqrt(row @ row))) ** 2))), size
 
 
 def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT_STEP_Z, min_step: float = JOLT_STEP_MIN,
@@ -279,12 +272,12 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
     sigma = np.maximum(sigma, 1e-3 * max(float(min_step), 1e-12))  # a noise-free series: the size decides
     found: list = []
     for _ in range(int(max_steps)):
-        zk, size = _step_scores(x, sigma, window, known=found)
-        k = int(np.argmax(zk))
-        if zk[k] < z or np.linalg.norm(size[k]) < min_step:
+        scores = [_step_at(x, sigma, k, window, known=found) for k in range(n)]
+        k = int(np.argmax([zk for zk, _ in scores]))
+        if scores[k][0] < z or np.linalg.norm(scores[k][1]) < min_step:
             break
-        zr, sr = _step_scores(x, sigma, window, skip=(-1, 0), known=found)
-        if zr[k] < z or np.linalg.norm(sr[k]) < min_step:
+        zr, sr = _step_at(x, sigma, k, window, skip=(-1, 0), known=found)
+        if zr < z or np.linalg.norm(sr) < min_step:
             break  # the largest step left is one view's misfit
         found.append(k)
     return np.array(sorted(found), int)
