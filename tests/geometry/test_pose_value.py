@@ -61,6 +61,21 @@ def test_lab_parameters_of_a_nominal_scan_are_the_sample_ones_turned_back(poses,
     np.testing.assert_allclose(lab[:, 1:3], 0.0, atol=1e-12)
 
 
+def test_lab_parameters_go_back_to_the_same_poses(poses, geom):
+    c = np.array([0.3, -1.2, 2.0])
+    back = Poses.from_lab_params(poses.lab_params(geom, c), geom, c)
+    np.testing.assert_allclose(back.rotvecs, poses.rotvecs, atol=1e-12)
+    np.testing.assert_allclose(back.translations, poses.translations, atol=1e-12)
+    # a vertical lab translation is a vertical translation of the sample at every view
+    q = np.zeros((12, 6))
+    q[:, 2] = np.linspace(-0.5, 0.5, 12)
+    up = Poses.from_lab_params(q, geom, c)
+    np.testing.assert_allclose(up.translations[:, 2], q[:, 2], atol=1e-12)
+    np.testing.assert_allclose(up.translations[:, :2], 0.0, atol=1e-12)
+    with pytest.raises(GeometryError, match=r"params must have shape \(12, 6\)"):
+        Poses.from_lab_params(q[:5], geom, c)
+
+
 def test_gauge_and_application_agree_with_the_functions(poses, geom):
     c = (0.0, 0.0, 0.0)
     g = poses.gauge_fixed(geom, center=c)

@@ -94,6 +94,18 @@ def test_resume_with_the_same_fingerprint_works(tmp_path):
     assert info["status"] == "running" and info["fingerprint"] == _fake()
 
 
+def test_the_checkpoint_keeps_the_parameters_the_stages_held(tmp_path):
+    from pdvc.geometry import Poses
+
+    w = OutputWriter(tmp_path / "run", fingerprint=_fake())
+    state = dict(poses=Poses.identity(4), history=[], stage_index=1, rounds_done=2, offset_px=0.5, rings="on")
+    w.save_checkpoint(dict(state, held=["tz"]))
+    back = w.load_checkpoint()
+    assert back["held"] == ("tz",) and back["stage_index"] == 1 and back["offset_px"] == 0.5
+    w.save_checkpoint(state)  # nothing held
+    assert w.load_checkpoint()["held"] == ()
+
+
 def test_resume_of_an_older_run_without_fingerprint_warns(tmp_path, caplog):
     out = tmp_path / "run"
     OutputWriter(out)  # no fingerprint

@@ -14,7 +14,9 @@
   axis's tilt, along the beam too, from the row sums of the views (no
   reconstruction), and :func:`tilt_poses` turns it into poses;
   :class:`RowSumConsistency` scores any per-view poses against those row
-  sums (the half turns' guard of :func:`run_stages`);
+  sums (the half turns' guard of :func:`run_stages`) and measures the
+  vertical motion of the views from their registration
+  (:meth:`RowSumConsistency.vertical_motion`, :class:`VerticalMotion`);
 * :func:`compare_models` scores motion models (:data:`MODELS`) on views
   they were not fitted to: the default recipe's automatic model choice;
   :func:`cross_validated_misfit` compares finished calibrations by how well
@@ -32,7 +34,7 @@ from ._axis import MotionSummary, describe_motion
 from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps, jolt_views, reconstruct, refined_grid,
                       run_stages)
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
-from ._rowsums import AxisTiltEstimate, RowSumConsistency, estimate_axis_tilt, tilt_poses
+from ._rowsums import AxisTiltEstimate, RowSumConsistency, VerticalMotion, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual
 from ._epipolar import EpipolarFit, EpipolarViews, epipolar_refine, epipolar_residuals, epipolar_views, view_pairs
@@ -108,6 +110,7 @@ __all__ = [
     "offset_poses",
     "AxisTiltEstimate",
     "RowSumConsistency",
+    "VerticalMotion",
     "estimate_axis_tilt",
     "tilt_poses",
     "truncation_weights",

@@ -397,6 +397,14 @@ class _Context:
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
         self.offset_sigma = float("nan")
         self.model_choice: Optional[ModelChoice] = None  # stages with candidates: decided at the first one, then kept
+        self.held: tuple = ()  # parameters no smooth model moves (run_stages' held)
+        self.known_jolts = np.array([], int)  # views the jolt stage frees whatever it finds (run_stages' known_jolts)
+
+    def fixed(self, stage: Stage) -> tuple:
+        """The parameters ``stage`` keeps fixed: its own, and the run's ``held`` unless it is the jolt stage."""
+        if not self.held or stage.name.split(":")[0] == "jolts":
+            return tuple(stage.fixed)
+        return tuple(dict.fromkeys(tuple(stage.fixed) + self.held))
 
     def with_model(self, stage: Stage) -> Stage:
         """The stage with the motion model chosen (stages with ``candidates``, once a choice was made)."""
@@ -420,7 +428,8 @@ class _Context:
         # sample's edges, which Huber weights would lower (a foam's combined motion 0.009 -> 0.043 px, tuning split)
         self.model_choice = compare_models(
             volume, refined_grid(vg, stage.oversample), p, g, poses,
-            dict(basis=stage.basis, frame=stage.frame, fixed=stage.fixed), {c: model_fields(c) for c in stage.candidates},
+            dict(basis=stage.basis, frame=stage.frame, fixed=self.fixed(stage)),
+            {c: dict(model_fields(c), fixed=self.fixed(stage.replace(**model_fields(c)))) for c in stage.candidates},
             noise_variance=gamma2, weights=w, angles=self.angles, times=self.times, center=self.center,
             background=stage_background(stage, self.auto_background), backend=self.backend, max_iter=stage.max_iter,
             own_name=own, skip_simpler=short,
@@ -481,6 +490,8 @@ def run_stages(
     checkpoint: Optional[Callable[[dict], object]] = None,
     progress: Optional[Callable[[dict], object]] = None,
     row_sums=None,
+    held: tuple = (),
+    known_jolts=(),
 ) -> DriverResult:
     """Run ``stages`` in order from ``poses``; return the poses kept and why it stopped.
 
@@ -511,6 +522,15 @@ def run_stages(
         by more than ``ROW_SUMS_TOL`` above the lowest since stops the stage,
         which keeps the poses of that lowest (``ROW_SUMS_GUARD``;
         ``docs/method.md`` §5.31).
+    held : tuple of str
+        Pose parameters (of :data:`POSE_PARAMETERS`) that no stage of a smooth
+        model moves from ``poses`` (the jolt stage is not held), e.g.
+        ``("tz",)`` where the row sums measured the vertical motion
+        (``docs/method.md`` §5.35).
+    known_jolts : sequence of int
+        Views at which the sample is known to have jumped (the steps of the
+        vertical motion the row sums measured): the jolt stage frees a step
+        there too, besides the views it finds.
     """
     stages = tuple(stages)
     if not stages or not all(isinstance(s, Stage) for s in stages):
@@ -520,6 +540,8 @@ def run_stages(
         angles=angles, times=times, backend=backend, center=center,
     )
     ctx.row_sums = row_sums
+    ctx.held = tuple(held)
+    ctx.known_jolts = np.unique(np.asarray(known_jolts, dtype=int))
     poses = Poses.identity(geom.n_views) if poses is None else poses
     history = list(history)
     for h in history:  # a resumed run keeps the decision its first round made
@@ -625,6 +647,10 @@ class _StageRun:
                 log.info("stage %s: the views' positions measured one by one step at views %s%s", st.name, steps.tolist(),
                          "" if np.isin(steps, views).all() else f" (the SNR found {views.tolist()})")
                 views = np.union1d(views, steps).astype(int)
+            known = self.ctx.known_jolts
+            if known.size and not np.isin(known, views).all():
+                log.info("stage %s: the row sums' vertical motion steps at views %s", st.name, known.tolist())
+                views = np.union1d(views, known).astype(int)
             if views.size == 0:
                 log.info("stage %s: no view's fit stands out: no jolt, skipped", st.name)
                 if self.progress is not None:
@@ -817,7 +843,7 @@ class _StageRun:
         # a fresh reconstruction that already fits worse than the best ends the stage: measure nothing more
         limit = self.best[0] * (1 + st.diverge_tol) if "consistency" in st.guards and self.best is not None else None
         return correlate(
-            vol, vg_c, p, g, basis=self.basis, frame=st.frame, fixed=st.fixed, method=st.method, center=ctx.center,
+            vol, vg_c, p, g, basis=self.basis, frame=st.frame, fixed=ctx.fixed(st), method=st.method, center=ctx.center,
             weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
             max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,

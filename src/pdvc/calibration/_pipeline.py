@@ -476,19 +476,24 @@ def calibrate(
     lateral = roi == "on" or (trunc is not None and trunc.lateral)
     if tilt is not None:
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
+    # the vertical motion the row sums measured: a resumed run holds what its first run held
+    vertical_text, held = "", tuple(resume.get("held", ())) if resume else ()
+    known_jolts = row_sums.vertical_motion().steps if resume and held and row_sums is not None else ()
+    if row_sums is not None and not resume:
+        poses, held, known_jolts, vertical_text = _with_vertical(poses, row_sums, geom, vol_geom, lateral)
     row_sums, guard_text = _row_sums_guard(row_sums, geom, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
 
     def state_checkpoint(state):
         if checkpoint is not None:
-            checkpoint(dict(state, offset_px=offset_px, rings=rings))
+            checkpoint(dict(state, offset_px=offset_px, rings=rings, held=list(held)))
 
     t0 = time.perf_counter()
     drv = run_stages(
         p, geom, vol_geom, stage_list, poses=poses, noise_variance=gamma2, weights=weights, fix_scale=fix_scale,
         times=times, center=center, backend=backend, start=start, history=history, checkpoint=state_checkpoint,
-        progress=emit, row_sums=row_sums,
+        progress=emit, row_sums=row_sums, held=held, known_jolts=known_jolts,
     )
     timings["stages"] = time.perf_counter() - t0
     for i, o in enumerate(drv.stages):
@@ -509,6 +514,8 @@ def calibrate(
         options["axis_tilt"] = tilt_text
     if guard_text:
         options["row_sums_guard"] = guard_text
+    if vertical_text:
+        options["vertical_motion"] = vertical_text
     if isinstance(drv.background, int):
         log.info("background: %s", options["background"])
     res = _finish(
@@ -899,6 +906,44 @@ def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
     log.info("coarse initialisation: the stages start from the row sums' tilted axis")
     return (tilt_poses(geom, roll=tilt.roll, pitch=tilt.pitch, offset_px=offset_px),
             f"{what}: the stages started from this tilted axis")
+
+
+# the vertical motion that the row sums' registration measured (RowSumConsistency.vertical_motion) is where the stages
+# start and is held there by every stage of a smooth model (docs/method.md §5.35) when: its fit stands this far above
+# the noise of the views' shifts (energy over noise's, an F ratio), its residual is at most this many times that noise
+# (the fit holds the motion; a tilted or precessing axis left a foam's registration 1.7-2x its noise), and it moves the
+# sample by at least this RMS, pixels (a tilted axis reads as 0.001-0.011 px of it on the tuning half turns, drifts as
+# 0.05-0.37 px)
+VERTICAL_MIN_F = 25.0
+VERTICAL_MAX_MISFIT = 1.5
+VERTICAL_MIN_RMS_PX = 0.03
+
+
+def _with_vertical(poses, row_sums, geom, vol_geom, lateral: bool):
+    """(The poses to start from, the parameters the stages hold, the views at which it steps, what the report says):
+    the vertical motion that the row sums' registration measured, where it stands out of their noise and holds their
+    shifts. Scans without opposite views only (a half turn, whose rounds walked it away; on a real 360° neutron scan,
+    psi-neutron360, holding a 0.065 px vertical motion let the rounds invent a 39 px drift), and not on a
+    region-of-interest scan (``lateral``: the rows' sums miss what lies outside the field)."""
+    if lateral or poses is None or opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION:
+        return poses, (), (), ""
+    vm = row_sums.vertical_motion()
+    rms_px = float(np.sqrt(np.mean(vm.translation**2))) / float(np.linalg.norm(geom.v[0]))
+    steps = f", steps at views {', '.join(map(str, vm.steps.tolist()))}" if vm.steps.size else ""
+    what = (f"vertical motion from the row sums' registration: {rms_px:.3f} px RMS (a drift with acceleration{steps}), "
+            f"{vm.f_stat:.0f}x the energy of the views' noise ({vm.noise_px:.3f} px), residual {vm.misfit:.2f}x that noise")
+    if vm.f_stat < VERTICAL_MIN_F or vm.misfit > VERTICAL_MAX_MISFIT or rms_px < VERTICAL_MIN_RMS_PX:
+        text = (f"{what}: not used (needs at least {VERTICAL_MIN_F:g}x, at most {VERTICAL_MAX_MISFIT:g}x and "
+                f"{VERTICAL_MIN_RMS_PX:g} px)")
+        log.info("%s", text)
+        return poses, (), (), text
+    center = vol_geom.offset
+    q = poses.lab_params(geom, center)
+    q[:, 2] += vm.translation
+    text = (f"{what}: the stages start there and hold it (the jolt stage frees it again, with a step at the views it "
+            f"finds{' and at those steps' if vm.steps.size else ''})")
+    log.info("coarse initialisation: %s", text)
+    return Poses.from_lab_params(q, geom, center), ("tz",), vm.steps, text
 
 
 def _row_sums_sd_px(est, geom) -> float:

@@ -238,6 +238,18 @@ class Poses:
         q = self.to_params(center)
         return np.hstack([np.einsum("kji,kj->ki", F, q[:, :3]), np.einsum("kji,kj->ki", F, q[:, 3:])])
 
+    @classmethod
+    def from_lab_params(cls, params, geom, center=(0.0, 0.0, 0.0)) -> "Poses":
+        """From ``(n_views, 6)`` lab parameters of each view of ``geom``; inverse of :meth:`lab_params`."""
+        from ._frames import lab_frames
+
+        q = np.asarray(params, np.float64)
+        if q.ndim != 2 or q.shape != (geom.n_views, 6):
+            raise GeometryError(f"params must have shape ({geom.n_views}, 6), one row per view of geom, got {q.shape}")
+        F = lab_frames(geom)
+        return cls.from_params(np.hstack([np.einsum("kij,kj->ki", F, q[:, :3]), np.einsum("kij,kj->ki", F, q[:, 3:])]),
+                               center)
+
     # -- algebra --------------------------------------------------------------
     def compose(self, other: "Poses") -> "Poses":
         """``self ∘ other``: first ``other``, then ``self`` (exact on SO(3))."""

@@ -100,6 +100,8 @@ def build_report(out, result, *, projections, angles, params_lab, inputs=()):
         summary["coarse axis offset (px)"] = result.initial_offset_px
     if "axis_tilt" in (getattr(result, "options", None) or {}):
         summary["coarse axis tilt (row sums of the views)"] = result.options["axis_tilt"]
+    if "vertical_motion" in (getattr(result, "options", None) or {}):
+        summary["vertical motion (row sums' registration)"] = result.options["vertical_motion"]
     if "row_sums_guard" in (getattr(result, "options", None) or {}):
         summary["row sums' guard on the rounds"] = result.options["row_sums_guard"]
     fitted = any(h.get("background", -1) >= 0 for h in (getattr(result, "history", None) or ()))

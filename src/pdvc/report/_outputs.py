@@ -171,7 +171,8 @@ class OutputWriter:
         atomic_write_text(self.out / RUN_FILE, json.dumps(info, indent=2, default=str) + "\n")
 
     def save_checkpoint(self, state: dict) -> None:
-        """The driver's state after a round (poses, history, stage index, rounds done, coarse offset, rings removed)."""
+        """The driver's state after a round (poses, history, stage index, rounds done, coarse offset, rings removed,
+        parameters held)."""
         poses = state["poses"]
         offset_px = state.get("offset_px")
         with atomic_path(self.out / CHECKPOINT) as tmp:
@@ -185,6 +186,7 @@ class OutputWriter:
                     rounds_done=np.array(int(state.get("rounds_done", 0))),
                     offset_px=np.array(np.nan if offset_px is None else float(offset_px)),
                     rings=np.array(str(state.get("rings", ""))),
+                    held=np.array(",".join(state.get("held", ()))),
                 )
 
     def load_checkpoint(self):
@@ -205,6 +207,7 @@ class OutputWriter:
                 rounds_done=int(z["rounds_done"]),
                 offset_px=None if np.isnan(off) else off,
                 rings=str(z["rings"]) if "rings" in z else "",
+                held=tuple(h for h in str(z["held"]).split(",") if h) if "held" in z else (),
             )
 
     # -- final outputs ---------------------------------------------------------
