@@ -221,6 +221,18 @@ JOLT_STEP_MIN = 0.15
 JOLT_STEP_MAX = 16
 
 
+def _is_jolt_stage(stage: Stage) -> bool:
+    """Whether ``stage`` is the jolt stage (:func:`pdvc.calibration.jolt_stage`: its basis is ``JOLT_BASIS``)."""
+    return isinstance(stage.basis, str) and stage.basis == JOLT_BASIS
+
+
+def series_noise(x: np.ndarray) -> np.ndarray:
+    """The noise of each column of a per-view series, robust to its smooth trend and to steps: 1.4826 MAD of its second
+    differences, over √6 (what :func:`jolt_steps` and the row sums' vertical motion measure a series against)."""
+    d2 = np.diff(np.asarray(x, dtype=float), 2, axis=0)
+    return 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
+
+
 def _step_at(x: np.ndarray, sigma: np.ndarray, k: int, window: int, skip: tuple = (), known=()) -> tuple[float, np.ndarray]:
     """(z, size) of a step at view k (views >= k moved): a line and a step fitted by least squares to the ``window``
     views on each side, leaving out the views at offsets ``skip`` from k, with the steps at the ``known`` views fitted
@@ -267,9 +279,7 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
     n = x.shape[0]
     if n < 2 * window + 2 or not np.all(np.isfinite(x)):
         return np.array([], int)
-    d2 = np.diff(x, 2, axis=0)
-    sigma = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
-    sigma = np.maximum(sigma, 1e-3 * max(float(min_step), 1e-12))  # a noise-free series: the size decides
+    sigma = np.maximum(series_noise(x), 1e-3 * max(float(min_step), 1e-12))  # a noise-free series: the size decides
     found: list = []
     for _ in range(int(max_steps)):
         scores = [_step_at(x, sigma, k, window, known=found) for k in range(n)]
@@ -402,7 +412,7 @@ class _Context:
 
     def fixed(self, stage: Stage) -> tuple:
         """The parameters ``stage`` keeps fixed: its own, and the run's ``held`` unless it is the jolt stage."""
-        if not self.held or stage.name.split(":")[0] == "jolts":
+        if not self.held or _is_jolt_stage(stage):
             return tuple(stage.fixed)
         return tuple(dict.fromkeys(tuple(stage.fixed) + self.held))
 
@@ -585,7 +595,7 @@ def run_stages(
         run = _StageRun(ctx, stage, i, poses, history, checkpoint, progress, previous=kept, refines=refines, volume=primed,
                         last_volume=last)
         poses, status, res, gv = run.run(first)
-        jolts_next = i + 1 < len(stages) and isinstance(stages[i + 1].basis, str) and stages[i + 1].basis == JOLT_BASIS
+        jolts_next = i + 1 < len(stages) and _is_jolt_stage(stages[i + 1])
         last = (stage, run.last_volume) if jolts_next and run.last_volume is not None else None
         kept = res if res is not None else kept
         guard_volume = gv if gv is not None else guard_volume
@@ -638,7 +648,7 @@ class _StageRun:
     def run(self, first_round: int):
         st = self.stage
         status = Status.ROUNDS_DONE if st.until == "rounds" else Status.MAX_ITER
-        if isinstance(st.basis, str) and st.basis == JOLT_BASIS:
+        if _is_jolt_stage(st):
             views = self._jolt_views(self.previous.snr_after) if self.previous is not None else np.array([], int)
             if views.size:
                 views = self._jolts_confirmed(views)

@@ -366,7 +366,7 @@ class RowSumConsistency:
         views each side); the fit averages the noise of the views' shifts (a rod's
         few features: 0.05-0.15 px per view at 40 rows).
         """
-        from ._driver import jolt_steps
+        from ._driver import jolt_steps, series_noise
 
         dz = _register(self._m_raw, self._keep, offsets=True)
         nv = dz.size
@@ -379,10 +379,9 @@ class RowSumConsistency:
         fit = H @ c
         fit = fit - fit.mean()
         res = dz - H @ c
-        # the noise of one view's shift from the series' second differences (robust, as jolt_steps), and how far the
-        # residual of the fit is above it (model error: a motion the fit does not hold)
-        d2 = np.diff(dz, 2)
-        noise = max(float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)), 1e-12)
+        # the noise of one view's shift, as jolt_steps measures it, and how far the residual of the fit is above it
+        # (model error: a motion the fit does not hold)
+        noise = max(float(series_noise(dz)), 1e-12)
         dof = max(nv - H.shape[1], 1)
         misfit = float(_robust_std(res)) * np.sqrt(nv / dof) / noise
         f_stat = float(fit @ fit) / ((H.shape[1] - 1) * noise**2)
