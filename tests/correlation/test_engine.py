@@ -131,6 +131,45 @@ def test_parallel_beam_translation_along_the_beam_is_reported_unobservable():
     np.testing.assert_allclose(res.params[:, :3], across, atol=2e-3)
 
 
+def test_lab_frame_increments_are_read_in_the_posed_lab_axes():
+    # an increment acts before the current pose: with the nominal lab axes, a tilt of the current poses leaked each lab
+    # parameter into the others. On a parallel beam the lab translation along y moves every point along its own ray
+    # (no view sees it); leaked, it got a small curvature of its own, and a real 360° scan's warm-up (its poses tilted
+    # 0.2° by the row sums) drifted along it by 39 length units
+    from pdvc.geometry import Poses
+
+    rng = np.random.default_rng(5)
+    vg = pdvc.VolumeGeometry((24, 24, 24))
+    vol = sum(gaussian_blob_volume(vg, rng.uniform(-7, 7, 3), 2.0, 1.0) for _ in range(15))
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(28, 30), pixel=1.0)
+    c = np.asarray(vg.offset, float)
+    t = np.linspace(-1, 1, angles.size)
+    tilt = np.radians(2.0)
+
+    def poses(tx, ty):
+        q = np.zeros((angles.size, 6))
+        q[:, 0], q[:, 1], q[:, 3] = tx, ty, tilt  # the axis tilted toward the beam, as a start from the row sums
+        return Poses.from_lab_params(q, geom, c)
+
+    # the premise: a lab ty that drifts by 2 voxels changes the views 100x less than a tx of a tenth of that
+    p0 = forward(vol, vg, geom.apply(poses(0.0, 0.0)))
+    d_ty = np.abs(forward(vol, vg, geom.apply(poses(0.0, 2.0 * t))) - p0).max()
+    d_tx = np.abs(forward(vol, vg, geom.apply(poses(0.2 * t, 0.0))) - p0).max()
+    assert d_ty < 1e-2 * d_tx
+    truth, start = poses(0.3 * t, 0.0), poses(0.0, 1.5 * t)  # the solve starts from a ty the data cannot see
+    data = forward(vol, vg, geom.apply(truth))
+    data += rng.normal(0, 0.02 * data.std(), data.shape).astype(np.float32)
+    res = correlate(vol, vg, data, geom, basis="poly:2", frame="lab", fixed=("rx", "ry", "rz", "tz"),
+                    initial_rotvecs=start.rotvecs, initial_translations=start.translations, tol_px=1e-5, max_iter=20)
+    q = res.poses.lab_params(geom, c)
+    np.testing.assert_allclose(q[:, 1], 1.5 * t, atol=1e-6)  # where it started
+    np.testing.assert_allclose(q[:, 0], 0.3 * t, atol=3e-3)
+    np.testing.assert_allclose(q[:, 2:], truth.lab_params(geom, c)[:, 2:], atol=1e-9)  # fixed: as they started
+    assert len(res.observability.directions) >= 1  # ty: reported unobservable, not invented
+    assert all(abs(abs(d[1]) - 1) < 1e-6 for d in res.observability.directions)
+
+
 def test_bad_options_raise(setup):
     vg, vol, geom, angles = setup
     s = np.zeros((36, 40, 48), np.float32)

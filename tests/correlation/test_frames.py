@@ -88,6 +88,30 @@ def test_lab_rotation_about_pivot_off_axis():
     np.testing.assert_allclose(params_to_lab(params_to_sample(pl, T), T), pl, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind", ["cone", "parallel"])
+def test_an_increment_on_tilted_poses_moves_the_sample_along_the_lab_axes(kind, rng):
+    # the engine composes an increment before the current pose: read with rotvecs, a lab translation moves the sample
+    # by exactly that lab vector in the volume frame, whatever the pose; with the nominal axes it is tilted with it
+    from pdvc.geometry import Poses
+
+    g = circular_cone(ANGLES, sod=100, odd=50, det_shape=(10, 12), pixel=0.3) if kind == "cone" else \
+        parallel(ANGLES, det_shape=(10, 12), pixel=0.3)
+    n = ANGLES.size
+    pose = Poses(rng.normal(0, 0.05, (n, 3)), rng.normal(0, 1.0, (n, 3)))  # tilts of ~3°
+    F = lab_frames(g)
+    l = np.array([0.0, 1.0, 0.0])  # along the beam
+    for T, exact in ((lab_to_sample_map(g, rotvecs=pose.rotvecs), True), (lab_to_sample_map(g), False)):
+        d = params_to_sample(np.broadcast_to(np.r_[l, 0, 0, 0], (n, 6)), T)
+        moved = pose.compose(Poses.from_params(d, (0.0, 0.0, 0.0)))
+        shift = moved.translations - pose.translations  # the volume-frame motion of every point (no rotation added)
+        err = np.abs(shift - F @ l).max()
+        assert (err < 1e-12) if exact else (err > 1e-2)
+    # identity poses: the nominal map
+    np.testing.assert_allclose(lab_to_sample_map(g, rotvecs=np.zeros((n, 3))), lab_to_sample_map(g), atol=1e-15)
+    with pytest.raises(pdvc.ShapeError, match="rotvecs"):
+        lab_to_sample_map(g, rotvecs=np.zeros((n + 1, 3)))
+
+
 def test_to_lab_quadratic_form_invariance(rng):
     g = random_geometry("cone", rng, n_views=6)
     T = lab_to_sample_map(g, center=(0.5, 0.2, -1.0))

@@ -271,11 +271,11 @@ def compare_models(
             # the increment the fit added to the stage's poses, on the basis; then evaluated at the views left out
             d = (p0_fit.inverse() @ res.poses).to_params(c)
             if m["frame"] == "lab":
-                d = params_to_lab(d, lab_to_sample_map(g_fit))
+                d = params_to_lab(d, lab_to_sample_map(g_fit, rotvecs=p0_fit.rotvecs))
             coef = np.linalg.lstsq(S[fit], d, rcond=None)[0]
             d_test = S[test] @ coef
             if m["frame"] == "lab":
-                d_test = params_to_sample(d_test, lab_to_sample_map(g_test))
+                d_test = params_to_sample(d_test, lab_to_sample_map(g_test, rotvecs=p0_test.rotvecs))
             pred = p0_test @ Poses.from_params(d_test, c)
             # how far the model moves the sample from the stage's poses, gauge-free (a motion of the whole scan is not one)
             rv_m, t_m = np.empty((n, 3)), np.empty((n, 3))

@@ -91,12 +91,12 @@ def assess(
     prob, basis_obj = _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, weights, noise_variance, angles, times, backend,
                                background)
     red = prob.reduce(poses.rotvecs, poses.translations)
-    _, obs, var = _full_step(prob, basis_obj, red, rcond, 0.0)
+    _, obs, var = _full_step(prob, basis_obj, red, poses.rotvecs, rcond, 0.0)
     params = poses.to_params(prob.center)
     params_lab = poses.lab_params(geom, prob.center)
     q = params_lab if frame == "lab" else params
     X = (q / prob.scale[None, :])[:, prob.free]
-    M, b = prob.framed(red)
+    M, b = prob.framed(red, poses.rotvecs)
     modes = []
     if np.any(X):
         U, S, Vt = np.linalg.svd(X, full_matrices=False)
@@ -114,7 +114,7 @@ def assess(
             coeffs = np.linalg.lstsq(Smat, alpha, rcond=None)[0]
             modes.append(Mode(spatial=spatial * prob.scale, coefficients=coeffs, alpha=alpha, alpha_free=free, chi=prob.chi(red)))
     return Assessment(
-        poses=poses, params=params, params_lab=params_lab, std=_std_sample(prob, var), observability=obs,
+        poses=poses, params=params, params_lab=params_lab, std=_std_sample(prob, var, poses.rotvecs), observability=obs,
         modes=tuple(modes), chi=prob.chi(red), snr=_overall_snr(red), snr_per_view=red.snr_db(), frame=frame,
         basis_names=tuple(basis_obj.names), center=prob.center,
     )

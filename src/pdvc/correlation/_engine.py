@@ -236,7 +236,7 @@ class _Problem:
     geom: VectorGeometry
     weights: Optional[np.ndarray]
     center: np.ndarray
-    T: Optional[np.ndarray]  # (n, 6, 6) lab -> sample, or None (sample frame)
+    lab: bool  # the solve's parameters are lab-frame ones (mapped to the sample frame by lab_map)
     free: np.ndarray  # (6,) bool
     scale: np.ndarray  # (6,)
     gamma2: float
@@ -267,25 +267,39 @@ class _Problem:
             red = replace(red, resid_sum=red.resid_sum + self.robust[1] * red.weight_sum)
         return view_offset(red, self.gamma2)
 
-    def framed(self, red: ViewReduction):
-        """M, b in the solve's frame and scaled units, restricted to free parameters."""
+    def lab_map(self, rv) -> Optional[np.ndarray]:
+        """(n, 6, 6) lab -> sample map of an increment composed on poses of rotation vectors ``rv``; None in the sample
+        frame.
+
+        The increment acts before the current pose (:func:`_compose_increment`): its lab axes are the posed
+        geometry's (``lab_to_sample_map(..., rotvecs=rv)``). With the nominal ones, a tilt of the current poses leaked
+        a part of each lab parameter into the others: on a parallel beam the translation along the rays, which no view
+        sees, got a small curvature of its own, and the warm-up of a real 360° scan drifted along it by 39 length
+        units (``docs/method.md`` §5.36).
+        """
+        return lab_to_sample_map(self.geom, rotvecs=rv) if self.lab else None
+
+    def framed(self, red: ViewReduction, rv):
+        """M, b in the solve's frame and scaled units, restricted to free parameters, linearised at rotations ``rv``."""
         M, b = red.M, red.b
-        if self.T is not None:
-            M = np.einsum("kji,kjl,klm->kim", self.T, M, self.T)
-            b = np.einsum("kji,kj->ki", self.T, b)
+        T = self.lab_map(rv)
+        if T is not None:
+            M = np.einsum("kji,kjl,klm->kim", T, M, T)
+            b = np.einsum("kji,kj->ki", T, b)
         S = self.scale
         M = M * S[None, :, None] * S[None, None, :]
         b = b * S[None, :]
         f = self.free
         return M[:, f][:, :, f], b[:, f]
 
-    def to_sample_params(self, delta_scaled_free: np.ndarray) -> np.ndarray:
-        """(n_views, n_free) scaled increments in the solve frame -> (n_views, 6) sample params."""
+    def to_sample_params(self, delta_scaled_free: np.ndarray, rv) -> np.ndarray:
+        """(n_views, n_free) scaled increments in the solve frame -> (n_views, 6) sample params, at rotations ``rv``."""
         d = np.zeros((delta_scaled_free.shape[0], 6))
         d[:, self.free] = delta_scaled_free
         d = d * self.scale[None, :]
-        if self.T is not None:
-            d = np.einsum("kij,kj->ki", self.T, d)
+        T = self.lab_map(rv)
+        if T is not None:
+            d = np.einsum("kij,kj->ki", T, d)
         return d
 
     def max_displacement_px(self, rv, t, rv2, t2) -> float:
@@ -304,8 +318,8 @@ def _assemble(S: np.ndarray, M: np.ndarray, b: np.ndarray):
     return H, h
 
 
-def _full_step(prob: _Problem, basis: TemporalBasis, red: ViewReduction, rcond: float, damping: float):
-    M, b = prob.framed(red)
+def _full_step(prob: _Problem, basis: TemporalBasis, red: ViewReduction, rv, rcond: float, damping: float):
+    M, b = prob.framed(red, rv)
     nfree = M.shape[1]
     if basis.kind == "dirac":
         x, keep, w, V = _eig_solve(M, b, rcond, damping)
@@ -545,7 +559,7 @@ def correlate(
     poses = Poses(rv, t)
     params = poses.to_params(c)
     params_lab = poses.lab_params(geom, c)
-    std = _std_sample(prob, var)
+    std = _std_sample(prob, var, rv)
     return CorrelationResult(
         geometry=geom.apply_poses(rv, t),
         rotvecs=rv,
@@ -607,7 +621,7 @@ def _problem(volume, vol_geom, projections, geom, basis, frame, center, fixed, w
         raise CorrelationError(f"noise_variance must be positive, got {gamma2!r}")
     prob = _Problem(
         volume=vol, vol_geom=vol_geom, projections=s, geom=geom, weights=weights, center=c,
-        T=lab_to_sample_map(geom) if frame == "lab" else None, free=free, scale=_scaling(radius), gamma2=gamma2,
+        lab=frame == "lab", free=free, scale=_scaling(radius), gamma2=gamma2,
         backend=backend, points=sample_points(vol_geom, 3, fraction=0.8),
         background=None if background is None else int(background),
     )
@@ -678,15 +692,16 @@ def _overall_snr(red: ViewReduction) -> float:
     return float(10 * np.log10(var_s / var_r))
 
 
-def _std_sample(prob: _Problem, var_scaled_free: np.ndarray) -> np.ndarray:
-    """Per-view std of the sample-frame parameters from scaled, framed variances (diagonal only)."""
+def _std_sample(prob: _Problem, var_scaled_free: np.ndarray, rv) -> np.ndarray:
+    """Per-view std of the sample-frame parameters from scaled, framed variances (diagonal only), at rotations ``rv``."""
     n = var_scaled_free.shape[0]
     var = np.full((n, 6), 0.0)
     var[:, prob.free] = var_scaled_free
     var[:, ~prob.free] = 0.0
     var = var * prob.scale[None, :] ** 2
-    if prob.T is not None:
-        T2 = prob.T**2
+    T = prob.lab_map(rv)
+    if T is not None:
+        T2 = T**2
         var = np.einsum("kij,kj->ki", T2, np.nan_to_num(var, nan=np.inf))
         var[~np.isfinite(var)] = np.nan
     return np.sqrt(var)
@@ -746,7 +761,7 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
     x = None  # accumulated increments (scaled, solve frame), for the acceleration
     while prob.n_pass < max_iter + 1:
         it += 1
-        delta_f, obs, var = _full_step(prob, basis, red, rcond, mu)
+        delta_f, obs, var = _full_step(prob, basis, red, rv, rcond, mu)
         if x is None:
             x = np.zeros_like(delta_f)
         accelerated = aa is not None and mu == 0.0
@@ -755,7 +770,7 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
             if len(chi_hist) < 2 or chi_hist[-1] < (1.0 - _AA_REGIME) * chi_hist[-2]:
                 aa.reset()
             delta_f = aa.step(x, delta_f)
-        delta = prob.to_sample_params(delta_f)
+        delta = prob.to_sample_params(delta_f, rv)
         rv2, t2 = _compose_increment(rv, t, delta, prob.center)
         step_px = prob.max_displacement_px(rv, t, rv2, t2)
         red2 = prob.reduce(rv2, t2)
@@ -829,7 +844,7 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
             status = Status.NOISE_FLOOR
             break
         # initial guess: dominant direction of the free per-view solutions
-        M, b = prob.framed(red)
+        M, b = prob.framed(red, rv)
         x, keep, _, _ = _eig_solve(M, b, rcond, 0.0)
         _, _, Vt = np.linalg.svd(x, full_matrices=False)
         p = Vt[0]
@@ -839,12 +854,12 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
         p_mode = None
         for _ in range(mode_iter):
             it += 1
-            M, b = prob.framed(red)
+            M, b = prob.framed(red, rv)
             p, a = _pgd_fixed_point(M, b, S, passes, p if p_mode is None else p_mode, a)
             if p_mode is None:
                 p_mode = p.copy()
             # the increment is α_k p; keep the mode's spatial direction for the history
-            delta = prob.to_sample_params(np.outer(S @ a, p))
+            delta = prob.to_sample_params(np.outer(S @ a, p), rv)
             rv2, t2 = _compose_increment(rv, t, delta, prob.center)
             step_px = prob.max_displacement_px(rv, t, rv2, t2)
             red2 = prob.reduce(rv2, t2)
@@ -862,7 +877,7 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
             if step_px < tol_px:
                 break
         # free (Dirac) history of the same spatial mode, at the end of the mode
-        M, b = prob.framed(red)
+        M, b = prob.framed(red, rv)
         q = np.einsum("i,kij,j->k", p_mode, M, p_mode)
         r = np.einsum("ki,i->k", b, p_mode)
         free_alpha = total_alpha + np.where(q > 0, r / np.where(q > 0, q, 1.0), np.nan)
@@ -881,5 +896,5 @@ def _run_pgd(prob, basis, rv, t, red, chi_hist, snr_hist, max_modes, passes, mod
         status = Status.MAX_MODES
     if chi_hist[-1] <= noise_floor:
         status = Status.NOISE_FLOOR
-    _, obs, var = _full_step(prob, basis, red, rcond, 0.0)
+    _, obs, var = _full_step(prob, basis, red, rv, rcond, 0.0)
     return rv, t, red, status, var, obs, modes, table

@@ -49,7 +49,7 @@ def _skew(a: np.ndarray) -> np.ndarray:
     )
 
 
-def lab_to_sample_map(geom: VectorGeometry, *, center=None, pivot=None) -> np.ndarray:
+def lab_to_sample_map(geom: VectorGeometry, *, center=None, pivot=None, rotvecs=None) -> np.ndarray:
     """Per-view 6x6 map ``T_k`` from lab-frame to sample-frame motion parameters.
 
     ``p_sample = T_k @ p_lab``, both in ``(tx, ty, tz, rx, ry, rz)`` order
@@ -65,6 +65,12 @@ def lab_to_sample_map(geom: VectorGeometry, *, center=None, pivot=None) -> np.nd
         Lab point ``q`` about which the lab-frame rotations act (lab
         coordinates; the lab origin is the volume-frame origin, on the
         nominal rotation axis). Default: ``center`` read as a lab point.
+    rotvecs : (n_views, 3), optional
+        Rotations of the poses that a sample-frame increment is composed
+        on (it acts before them: :meth:`pdvc.geometry.Poses.compose`). Its
+        translation then moves the sample by ``R_k t`` in the volume frame,
+        so the lab axes it is read in are those of the posed geometry,
+        ``R_kᵀ F_k``. Default: none (the nominal axes ``F_k``).
 
     Returns
     -------
@@ -77,6 +83,11 @@ def lab_to_sample_map(geom: VectorGeometry, *, center=None, pivot=None) -> np.nd
         ``a_k = 0`` for the nominal scans and ``T_k = block-diag(F_k, F_k)``,
         an orthogonal matrix.
     """
+    if rotvecs is not None:
+        rv = np.asarray(rotvecs, dtype=np.float64)
+        if rv.shape != (geom.n_views, 3):
+            raise ShapeError(f"rotvecs must have shape ({geom.n_views}, 3), one row per view of geom, got {rv.shape}")
+        geom = geom.apply_poses(rv, np.zeros_like(rv))
     F = lab_frames(geom)
     n = F.shape[0]
     c = np.zeros(3) if center is None else _point(center, "center")
