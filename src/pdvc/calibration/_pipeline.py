@@ -922,10 +922,10 @@ VERTICAL_MIN_RMS_PX = 0.03
 def _with_vertical(poses, row_sums, geom, vol_geom, lateral: bool):
     """(The poses to start from, the parameters the stages hold, the views at which it steps, what the report says):
     the vertical motion that the row sums' registration measured, where it stands out of their noise and holds their
-    shifts. Scans without opposite views only (a half turn, whose rounds walked it away; on a real 360° neutron scan,
-    psi-neutron360, holding a 0.065 px vertical motion let the rounds invent a 39 px drift), and not on a
-    region-of-interest scan (``lateral``: the rows' sums miss what lies outside the field)."""
-    if lateral or poses is None or opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION:
+    shifts. Half and full turns alike (the rounds walked a rod's vertical position away from the truth on both;
+    ``docs/method.md`` §5.35, §5.36), not on a region-of-interest scan (``lateral``: the rows' sums miss what lies
+    outside the field)."""
+    if lateral or poses is None:
         return poses, (), (), ""
     vm = row_sums.vertical_motion()
     rms_px = float(np.sqrt(np.mean(vm.translation**2))) / float(np.linalg.norm(geom.v[0]))
