@@ -409,6 +409,7 @@ class _Context:
         self.model_choice: Optional[ModelChoice] = None  # stages with candidates: decided at the first one, then kept
         self.held: tuple = ()  # parameters no smooth model moves (run_stages' held)
         self.known_jolts = np.array([], int)  # views the jolt stage frees whatever it finds (run_stages' known_jolts)
+        self.vertical: Optional[np.ndarray] = None  # the vertical motion "tz" is held at (run_stages' vertical)
 
     def fixed(self, stage: Stage) -> tuple:
         """The parameters ``stage`` keeps fixed: its own, and the run's ``held`` unless it is the jolt stage."""
@@ -476,9 +477,35 @@ class _Context:
     def gauge(self, poses: Poses) -> Poses:
         return poses.gauge_fixed(self.geom, center=self.vol_geom.offset, scale=self.fix_scale)
 
+    def hold(self, poses: Poses, stage: Stage) -> Poses:
+        """``poses`` with the held vertical motion set again (:func:`hold_vertical`), after a round of a held stage."""
+        if self.vertical is None or "tz" not in self.fixed(stage):
+            return poses
+        return hold_vertical(poses, self.vertical, self.geom, self.vol_geom.offset)
+
     def moves(self, a: Poses, b: Poses) -> np.ndarray:
         """Detector displacement of the sample points from poses ``a`` to ``b`` (full-resolution pixels)."""
         return self.geom.apply(b).project_points(self.points) - self.geom.apply(a).project_points(self.points)
+
+
+def hold_vertical(poses: Poses, vertical, geom, center) -> Poses:
+    """``poses`` whose lab vertical translation at ``center`` moves, view by view, as ``vertical`` does.
+
+    ``vertical`` (n_views,) is a vertical motion of the sample itself, as the
+    row sums' registration measures it (``RowSumConsistency.vertical_motion``;
+    relative: only its change from the first view is used). It is written
+    in the frame where the first view's pose is the identity, the sample as
+    it stood at that view, and the poses are then put back in theirs: in any
+    other frame the vertical translation at the centre is the sample's own
+    motion plus what the frame's rotation adds view by view (a lever arm).
+    Everything but that translation is kept.
+    """
+    n = poses.n_views
+    first = Poses(np.repeat(poses.rotvecs[:1], n, axis=0), np.repeat(poses.translations[:1], n, axis=0))
+    q = poses.compose(first.inverse()).lab_params(geom, center)
+    v = np.asarray(vertical, dtype=np.float64)
+    q[:, 2] = v - v[0]
+    return Poses.from_lab_params(q, geom, center).compose(first)
 
 
 def run_stages(
@@ -502,6 +529,7 @@ def run_stages(
     row_sums=None,
     held: tuple = (),
     known_jolts=(),
+    vertical=None,
 ) -> DriverResult:
     """Run ``stages`` in order from ``poses``; return the poses kept and why it stopped.
 
@@ -541,6 +569,13 @@ def run_stages(
         Views at which the sample is known to have jumped (the steps of the
         vertical motion the row sums measured): the jolt stage frees a step
         there too, besides the views it finds.
+    vertical : (n_views,) array, optional
+        With ``"tz"`` held: the vertical motion it is held at (length units,
+        :func:`hold_vertical`), set again after every round of a held stage.
+        The vertical translation at the centre that a motion measured on the
+        sample itself gives depends on the poses' rotations and on their gauge
+        (``docs/method.md`` §5.36); held as a number, it drifted from the
+        truth as the rounds moved the rest.
     """
     stages = tuple(stages)
     if not stages or not all(isinstance(s, Stage) for s in stages):
@@ -552,6 +587,13 @@ def run_stages(
     ctx.row_sums = row_sums
     ctx.held = tuple(held)
     ctx.known_jolts = np.unique(np.asarray(known_jolts, dtype=int))
+    if vertical is not None:
+        vertical = np.asarray(vertical, dtype=np.float64)
+        if vertical.shape != (geom.n_views,) or not np.all(np.isfinite(vertical)):
+            raise StageError(f"vertical must be {geom.n_views} finite values, one per view, got shape {vertical.shape}")
+        if "tz" not in ctx.held:
+            raise StageError("vertical needs held to name 'tz'")
+    ctx.vertical = vertical
     poses = Poses.identity(geom.n_views) if poses is None else poses
     history = list(history)
     for h in history:  # a resumed run keeps the decision its first round made
@@ -722,7 +764,7 @@ class _StageRun:
                 if jumped is not None:
                     self.kept = res  # measured at the jump's poses
                 break
-            new = self.ctx.gauge(res.poses)
+            new = self.ctx.gauge(self.ctx.hold(res.poses, st))
             step = self.ctx.moves(self.poses, new)
             d = np.linalg.norm(step, axis=-1)
             inc, inc_max = float(np.sqrt(np.mean(d**2))), float(d.max())

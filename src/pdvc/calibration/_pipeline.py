@@ -32,8 +32,8 @@ from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
 from ._init import SHORT_SCAN_OPPOSITE_FRACTION, InitError, distinct_directions, opposite_fraction
-from ._driver import (PosesResult, correlation_volume, data_at_scale, nonneg_subsets, reconstruct, refined_grid, run_stages,
-                      stage_background)
+from ._driver import (PosesResult, correlation_volume, data_at_scale, hold_vertical, nonneg_subsets, reconstruct, refined_grid,
+                      run_stages, stage_background)
 from ._outer import gauge_text
 from ._select import with_model
 from ._stages import _RECIPE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS, Stage, StageError, recipe_stages
@@ -478,9 +478,11 @@ def calibrate(
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
     # the vertical motion the row sums measured: a resumed run holds what its first run held
     vertical_text, held = "", tuple(resume.get("held", ())) if resume else ()
-    known_jolts = row_sums.vertical_motion().steps if resume and held and row_sums is not None else ()
+    vm = row_sums.vertical_motion() if held and row_sums is not None else None
+    known_jolts = vm.steps if vm is not None else ()
     if row_sums is not None and not resume:
         poses, held, known_jolts, vertical_text = _with_vertical(poses, row_sums, geom, vol_geom, lateral)
+        vm = row_sums.vertical_motion() if held else None
     row_sums, guard_text = _row_sums_guard(row_sums, geom, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
@@ -494,6 +496,7 @@ def calibrate(
         p, geom, vol_geom, stage_list, poses=poses, noise_variance=gamma2, weights=weights, fix_scale=fix_scale,
         times=times, center=center, backend=backend, start=start, history=history, checkpoint=state_checkpoint,
         progress=emit, row_sums=row_sums, held=held, known_jolts=known_jolts,
+        vertical=vm.translation if vm is not None and "tz" in held else None,
     )
     timings["stages"] = time.perf_counter() - t0
     for i, o in enumerate(drv.stages):
@@ -937,13 +940,10 @@ def _with_vertical(poses, row_sums, geom, vol_geom, lateral: bool):
                 f"{VERTICAL_MIN_RMS_PX:g} px)")
         log.info("%s", text)
         return poses, (), (), text
-    center = vol_geom.offset
-    q = poses.lab_params(geom, center)
-    q[:, 2] += vm.translation
     text = (f"{what}: the stages start there and hold it (the jolt stage frees it again, with a step at the views it "
             f"finds{' and at those steps' if vm.steps.size else ''})")
     log.info("coarse initialisation: %s", text)
-    return Poses.from_lab_params(q, geom, center), ("tz",), vm.steps, text
+    return hold_vertical(poses, vm.translation, geom, vol_geom.offset), ("tz",), vm.steps, text
 
 
 def _row_sums_sd_px(est, geom) -> float:
