@@ -59,8 +59,8 @@ def test_psi_neutron_scan_with_the_default_recipe(tmp_path, capsys):
     single-offset geometry of the initialisation (SNR up, entropy down), and
     no motion is invented (no jolts, a precession and a drift within a small
     fraction of a pixel, in spite of the zingers).
-    Measured (session 39, the row sums' vertical motion held): offset -5.112 binned px (-20.45 px), SNR
-    11.77 -> 24.58 dB, entropy 5.520 -> 5.289 bits, precession RMS 0.044 deg, drift 0.15 px.
+    Measured (session 39, the row sums' vertical motion held): offset -5.113 binned px (-20.45 px), SNR
+    11.77 -> 24.61 dB, entropy 5.520 -> 5.285 bits, precession RMS 0.035 deg, drift 0.13 px.
     The axis's tilt found agrees with the row sums' (no reconstruction,
     ``estimate_axis_tilt``), which the stages start from.
     """
