@@ -96,6 +96,7 @@ def test_the_start_and_what_the_stages_hold():
     assert held == ("tz",) and len(jolts) == 0 and "the stages start there and hold it" in text, text
     lab0, lab1 = start.lab_params(GEOM, VG.offset), poses.lab_params(GEOM, VG.offset)
     v = rs.vertical_motion().translation
+    assert rs.vertical_motion() is rs.vertical_motion() and not v.flags.writeable  # measured once, shared read-only
     assert_allclose(lab1[:, 2] - lab0[:, 2], v - v[0], atol=1e-12)  # relative to the first view (hold_vertical)
     assert_allclose(np.delete(lab1, 2, axis=1), np.delete(lab0, 2, axis=1), atol=1e-12)
     # a region-of-interest scan: the row sums miss what lies outside the field

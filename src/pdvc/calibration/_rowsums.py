@@ -353,6 +353,7 @@ class RowSumConsistency:
         self._ss = ss1
         self._n_views = nv
         self._row_pitch = float(np.linalg.norm(geom.v[0]))  # vertical_motion(): pixels to length
+        self._vertical = None  # vertical_motion(), measured once
 
     def vertical_motion(self) -> "VerticalMotion":
         """The sample's vertical lab translation per view from the registration of the row sums (:class:`VerticalMotion`).
@@ -364,8 +365,10 @@ class RowSumConsistency:
         acceleration, ``{1, t, t²}``, and a step at each view where :func:`pdvc.calibration.jolt_steps`
         finds one (``VERTICAL_STEP_Z`` standard deviations, ``VERTICAL_STEP_WINDOW``
         views each side); the fit averages the noise of the views' shifts (a rod's
-        few features: 0.05-0.15 px per view at 40 rows).
+        few features: 0.05-0.15 px per view at 40 rows). Measured once; every call returns that (read-only) result.
         """
+        if self._vertical is not None:
+            return self._vertical
         from ._driver import jolt_steps, series_noise
 
         dz = _register(self._m_raw, self._keep, offsets=True)
@@ -385,8 +388,11 @@ class RowSumConsistency:
         dof = max(nv - H.shape[1], 1)
         misfit = float(_robust_std(res)) * np.sqrt(nv / dof) / noise
         f_stat = float(fit @ fit) / ((H.shape[1] - 1) * noise**2)
-        return VerticalMotion(translation=fit * self._row_pitch, steps=steps, f_stat=f_stat, misfit=misfit,
-                              noise_px=noise)
+        translation = fit * self._row_pitch
+        translation.flags.writeable = False
+        steps.flags.writeable = False
+        self._vertical = VerticalMotion(translation=translation, steps=steps, f_stat=f_stat, misfit=misfit, noise_px=noise)
+        return self._vertical
 
     def misfit(self, rotvecs) -> float:
         """How far per-view poses' rotations are from the row sums: the weighted residual over the best constant tilt's.
