@@ -36,7 +36,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..projectors import forward
 from ..recon import analytic, cgls, nonneg_ls, nonneg_ls_lipschitz, refined_grid, spline_upsample
 from ..status import Status
-from ._init import SHORT_SCAN_OPPOSITE_FRACTION, opposite_fraction
+from ._init import SHORT_SCAN_OPPOSITE_FRACTION, _mismatch, _opposite_pairs, opposite_fraction
 from ._select import ModelChoice, compare_models, model_fields, model_name, with_model
 from ._stages import JOLT_BASIS, Stage, StageError
 
@@ -219,6 +219,8 @@ JOLT_STEP_WINDOW = 6
 JOLT_STEP_Z = 8.0
 JOLT_STEP_MIN = 0.15
 JOLT_STEP_MAX = 16
+#: a step within this many angular steps of 180° from a larger one is its ghost (``jolt_steps(angles=)``, §5.37)
+JOLT_GHOST_REACH = 2
 
 
 def _is_jolt_stage(stage: Stage) -> bool:
@@ -253,7 +255,7 @@ def _step_at(x: np.ndarray, sigma: np.ndarray, k: int, window: int, skip: tuple 
 
 
 def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT_STEP_Z, min_step: float = JOLT_STEP_MIN,
-               max_steps: int = JOLT_STEP_MAX) -> np.ndarray:
+               max_steps: int = JOLT_STEP_MAX, angles=None) -> np.ndarray:
     """Views at which a series of per-view displacements steps: where a jolt moved the sample.
 
     ``displacements`` (n_views, m), in acquisition order: each view's
@@ -272,6 +274,17 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
     without the two views beside it (k − 1, k), so that a single view that
     fits poorly (a zinger left over) is not taken for one
     (``docs/method.md`` §5.34).
+
+    ``angles`` (n_views,), radians, optional: the views' scan angles. The
+    steps are then taken largest first, and none at a view within
+    ``JOLT_GHOST_REACH`` angular steps of 180° from one already taken that
+    has an opposite view (within half a step): on a full turn a jolt that
+    the smooth model took up leaves a smaller step at its opposite view
+    (whose rays the volume averaged with it), and a step freed there only
+    moves the jolt's across-beam part between the two views: the pairs of
+    opposite views fix the sum of the two steps, and 81 % of the half-turn
+    square wave that tells them apart is a rigid translation
+    (``docs/method.md`` §5.37).
     """
     x = np.array(displacements, dtype=float)
     if x.ndim == 1:
@@ -280,9 +293,13 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
     if n < 2 * window + 2 or not np.all(np.isfinite(x)):
         return np.array([], int)
     sigma = np.maximum(series_noise(x), 1e-3 * max(float(min_step), 1e-12))  # a noise-free series: the size decides
+    theta = None if angles is None else np.asarray(angles, dtype=np.float64)
+    if theta is not None and theta.shape != (n,):
+        raise ValueError(f"angles must hold one scan angle per view, shape ({n},), got {theta.shape}")
     found: list = []
-    for _ in range(int(max_steps)):
-        scores = [_step_at(x, sigma, k, window, known=found) for k in range(n)]
+    ghost = np.zeros(n, bool)  # the views near the opposite of a step taken
+    while len(found) < int(max_steps):
+        scores = [(0.0, 0.0) if ghost[k] else _step_at(x, sigma, k, window, known=found) for k in range(n)]
         k = int(np.argmax([zk for zk, _ in scores]))
         if scores[k][0] < z or np.linalg.norm(scores[k][1]) < min_step:
             break
@@ -290,7 +307,20 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
         if zr < z or np.linalg.norm(sr) < min_step:
             break  # the largest step left is one view's misfit
         found.append(k)
+        if theta is not None:
+            ghost |= _opposite_of(theta, k, JOLT_GHOST_REACH)
     return np.array(sorted(found), int)
+
+
+def _opposite_of(theta: np.ndarray, k: int, reach: float) -> np.ndarray:
+    """The views within ``reach`` angular steps of view ``k``'s opposite direction, ``θ_k + 180°`` (every turn), where
+    view ``k`` has an opposite view within half a step; none elsewhere (a half turn's views)."""
+    step = _opposite_pairs(np.mod(theta, 2 * np.pi), None)[1]
+    d = np.abs(_mismatch(theta, k))
+    d[k] = np.inf
+    if not step > 0 or d.min() > 0.5 * step * (1 + 1e-9):
+        return np.zeros(theta.size, bool)
+    return d <= (reach + 0.5) * step
 
 
 #: the row sums' guard (``run_stages(row_sums=...)``): once a stage's rounds creep (a round moved the sample points by
@@ -868,7 +898,7 @@ class _StageRun:
         )
         # across the beam and up, in each view's lab axes (along the beam is fixed), in voxels of the user's grid
         d = (res.params_lab - self.poses.lab_params(g, ctx.center))[:, [0, 2]] / float(np.mean(ctx.vol_geom.voxel_size))
-        return jolt_steps(d)
+        return jolt_steps(d, angles=ctx.angles)
 
     def _jolts_confirmed(self, views: np.ndarray) -> np.ndarray:
         """The views whose SNR still dips without their largest residuals (:func:`trimmed_snr`), against the volume the
