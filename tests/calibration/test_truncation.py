@@ -170,10 +170,11 @@ def test_jolt_steps_leaves_out_the_ghost_at_the_opposite_view_of_a_larger_step()
     rng = np.random.default_rng(5)
     n = 180
     theta = 2 * np.pi * np.arange(n) / n
-    assert np.nonzero(_opposite_of(theta, 113, 2))[0].tolist() == [21, 22, 23, 24, 25]
-    assert np.nonzero(_opposite_of(theta, 1, 2))[0].tolist() == [89, 90, 91, 92, 93]
-    assert np.nonzero(_opposite_of(np.unwrap(theta + 4 * np.pi), 178, 1))[0].tolist() == [87, 88, 89]
-    assert not _opposite_of(np.pi * np.arange(90) / 90, 1, 2).any()  # [0, 180°): no view has its opposite
+    step = 2 * np.pi / n
+    assert np.nonzero(_opposite_of(theta, 113, 2, step))[0].tolist() == [21, 22, 23, 24, 25]
+    assert np.nonzero(_opposite_of(theta, 90, 2, step))[0].tolist() == [0, 1, 2, 178, 179]  # across the turn's ends
+    assert np.nonzero(_opposite_of(np.unwrap(theta + 4 * np.pi), 178, 1, step))[0].tolist() == [87, 88, 89]
+    assert not _opposite_of(np.pi * np.arange(90) / 90, 1, 2, np.pi / 90).any()  # [0, 180°): no view has its opposite
     k = np.arange(n)
     t = k / (n - 1)
     a = np.column_stack([np.ones(n), t, t**2])

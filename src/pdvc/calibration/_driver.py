@@ -296,6 +296,7 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
     theta = None if angles is None else np.asarray(angles, dtype=np.float64)
     if theta is not None and theta.shape != (n,):
         raise ValueError(f"angles must hold one scan angle per view, shape ({n},), got {theta.shape}")
+    step = _opposite_pairs(np.mod(theta, 2 * np.pi), None)[1] if theta is not None else 0.0
     found: list = []
     ghost = np.zeros(n, bool)  # the views near the opposite of a step taken
     while len(found) < int(max_steps):
@@ -308,14 +309,13 @@ def jolt_steps(displacements, *, window: int = JOLT_STEP_WINDOW, z: float = JOLT
             break  # the largest step left is one view's misfit
         found.append(k)
         if theta is not None:
-            ghost |= _opposite_of(theta, k, JOLT_GHOST_REACH)
+            ghost |= _opposite_of(theta, k, JOLT_GHOST_REACH, step)
     return np.array(sorted(found), int)
 
 
-def _opposite_of(theta: np.ndarray, k: int, reach: float) -> np.ndarray:
-    """The views within ``reach`` angular steps of view ``k``'s opposite direction, ``θ_k + 180°`` (every turn), where
-    view ``k`` has an opposite view within half a step; none elsewhere (a half turn's views)."""
-    step = _opposite_pairs(np.mod(theta, 2 * np.pi), None)[1]
+def _opposite_of(theta: np.ndarray, k: int, reach: float, step: float) -> np.ndarray:
+    """The views within ``reach`` angular steps ``step`` of view ``k``'s opposite direction, ``θ_k + 180°`` (every
+    turn), where view ``k`` has an opposite view within half a step; none elsewhere (a half turn's views)."""
     d = np.abs(_mismatch(theta, k))
     d[k] = np.inf
     if not step > 0 or d.min() > 0.5 * step * (1 + 1e-9):
