@@ -112,7 +112,7 @@ AIR = {"drift": 0.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG);
 # --parallel: every case a parallel scan over a full turn
-SCAN = {"half_turn": False, "short_scan": False, "parallel": False}
+SCAN = {"half_turn": False, "short_scan": False, "parallel": False, "supersampling": 2}
 # --roi: the samples' radius in units of the volume's height n (0: the families' own, 0.36 n, inside the volume), on a
 # volume 1.4 n wide, as wide as the field of view. Above 0.7 n the sample is wider than the detector's field of view:
 # a region-of-interest scan (lateral truncation)
@@ -421,7 +421,8 @@ def run_case(c: Case) -> dict:
     t0 = time.perf_counter()
     geom = geometry(c, angles)
     rv, t = true_poses(c, angles)
-    scan = simulate_scan(phantom(c), geom, rotvecs=rv, translations=t, i0=c.i0, seed=c.seed, supersampling=2)
+    scan = simulate_scan(phantom(c), geom, rotvecs=rv, translations=t, i0=c.i0, seed=c.seed,
+                         supersampling=SCAN["supersampling"])
     # --roi: the volume as wide as the field of view (as a user reconstructs a region-of-interest scan)
     w = 1.4 if ROI["radius"] else c.width
     vg = pdvc.VolumeGeometry((c.n, round(w * c.n), round(w * c.n)))
@@ -541,6 +542,8 @@ def header(args) -> list:
         + (f"; edge fringes, {AIR['phase']} x the Laplacian (--phase)" if AIR["phase"] else "")
         + (f"; beam hardening, line integrals lowered by {AIR['hardening']} x p / p99.9 (--hardening)"
            if AIR["hardening"] else "")
+        + (f"; pixels sampled at {SCAN['supersampling']}x{SCAN['supersampling']} points (--supersampling)"
+           if SCAN["supersampling"] != 2 else "")
         + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
         + ("; every case a parallel scan over a full turn (--parallel)" if SCAN["parallel"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
@@ -698,6 +701,10 @@ def main(argv=None) -> int:
     ap.add_argument("--short-scan", action="store_true",
                     help="every case a cone-beam short scan over 180 deg + the fan angle, end views included "
                          f"(parallel cases at a {SHORT_SCAN_CONE_DEG:g} deg cone half-angle)")
+    ap.add_argument("--supersampling", type=int, default=2, metavar="S",
+                    help="the simulated detector samples each pixel at SxS points (default 2, what every figure in the "
+                         "docs used); a larger S comes nearer a pixel that integrates over its area, whose row sums a "
+                         "shift across the beam keeps (docs/method.md section 6)")
     ap.add_argument("--roi", type=float, default=0.0, metavar="RADIUS",
                     help="every sample of radius RADIUS times n, reconstructed on a volume 1.4 n wide, as wide as the "
                          "field of view (default 0: radius 0.36 n, volume n wide); above 0.7 the sample is wider than "
@@ -716,6 +723,9 @@ def main(argv=None) -> int:
     SCAN["half_turn"] = bool(args.half_turn)
     SCAN["short_scan"] = bool(args.short_scan)
     SCAN["parallel"] = bool(args.parallel)
+    if args.supersampling < 1:
+        ap.error("--supersampling must be a positive integer")
+    SCAN["supersampling"] = int(args.supersampling)
     if args.roi < 0:
         ap.error("--roi must be >= 0")
     ROI["radius"] = float(args.roi)

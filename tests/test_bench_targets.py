@@ -48,3 +48,13 @@ def test_an_unknown_motion_is_refused_by_name(capsys):
         with pytest.raises(SystemExit):
             bench.main(["--tiny", "--motions", "prec1,wobble"])
     assert "--motions takes names among offset, tilt_det" in capsys.readouterr().err
+
+
+def test_a_supersampling_below_one_is_refused_by_name(capsys):
+    import pytest
+
+    with benchmark_module("bench_accuracy") as bench:
+        with pytest.raises(SystemExit):
+            bench.main(["--tiny", "--supersampling", "0"])
+        assert bench.SCAN["supersampling"] == 2  # the default every figure in the docs used
+    assert "--supersampling must be a positive integer" in capsys.readouterr().err
