@@ -3,7 +3,8 @@
 Every case is a scan simulated with the ANALYTIC ellipsoid projector
 (:func:`pdvc.simulate.simulate_scan`: exact line integrals of an
 :class:`~pdvc.simulate.EllipsoidPhantom` along the true per-view rays, then
-Poisson counts, flats and darks, ``-log``) -- never with the voxel projector
+Poisson counts, flats and darks, ``-log``; each pixel sampled at 2x2 points,
+``--supersampling`` to change it) -- never with the voxel projector
 that the engine inverts (``DESIGN.md`` §4).
 
 Suite axes, each case drawing its own from a seeded RNG (``case(seed)``; no
