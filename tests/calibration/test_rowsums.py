@@ -374,6 +374,28 @@ def test_a_drift_the_row_sums_misread_is_neither_a_start_nor_a_guard(drifting_ro
     assert guard is None and "hold the tilt to" in why, why
 
 
+@pytest.mark.parametrize("sd_deg, used", [(0.15, True), (0.42, False)])
+def test_the_stages_start_from_the_row_sums_tilt_only_where_they_hold_it_to_a_tenth_of_a_pixel(monkeypatch, sd_deg, used):
+    """A reading 5.8 standard deviations from 0 that holds the tilt to 0.42° (0.17 px at the top row of 48): the misread
+    drift of a held-out rod (``bench_accuracy.py --quick --half-turn --seed0 18031``: 0.109 px from there, 0.031 px
+    without it; ``docs/method.md`` §5.39). The same significance at 0.15° (0.06 px) is a start."""
+    from types import SimpleNamespace
+
+    from pdvc.calibration import _rowsums
+
+    sd = np.deg2rad(sd_deg)
+    est = SimpleNamespace(roll=5.8 * sd, pitch=0.0, roll_sd=sd, pitch_sd=0.5 * sd, significance=5.8,
+                          tilt_deg=float(np.rad2deg(5.8 * sd)), moments_fit=0.98, describe=lambda: "a stub reading")
+    monkeypatch.setattr(_rowsums, "RowSumConsistency", lambda p, geom, offset_px: SimpleNamespace(estimate=est))
+    geom = parallel(np.linspace(0.0, np.pi, 90, endpoint=False), det_shape=(48, 56), pixel=1.0)
+    tilt, text, rs = _tilt_init(np.zeros((90, 48, 56), np.float32), geom, 0.0)
+    assert rs is not None
+    if used:
+        assert tilt is est and text == "a stub reading"
+    else:
+        assert tilt is None and "not used" in text and f"here {np.deg2rad(sd_deg) * 23.5:.2f} px" in text, text
+
+
 def test_a_tilt_the_row_sums_hold_keeps_its_significance(half_turn):
     geom, p = half_turn
     est = RowSumConsistency(p, geom, offset_px=2.5).estimate

@@ -849,9 +849,10 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
 TILT_INIT_MIN_SIGNIFICANCE = 5.0
 TILT_INIT_MAX_DEG = 3.0
 TILT_INIT_MIN_MOMENTS_FIT = 0.7
-# the row sums' guard is on only where they hold the tilt to this many pixels at the detector's top and bottom rows
-# (the larger standard deviation of roll and pitch times half the detector's height): a rod's row sums, with little
-# off the axis to tilt, hold it to 0.12-0.31 px at 40 rows and read a drift with acceleration as a tilt (§5.32)
+# the row sums' guard is on, and their tilt a start, only where they hold the tilt to this many pixels at the
+# detector's top and bottom rows (the larger standard deviation of roll and pitch times half the detector's height):
+# a rod's row sums, with little off the axis to tilt, hold it to 0.12-0.31 px at 40 rows and read a drift with
+# acceleration as a tilt (§5.32), at 5.4-5.8 standard deviations on two held-out rods (§5.39)
 ROW_SUMS_MAX_SD_PX = 0.1
 
 
@@ -880,10 +881,12 @@ def _tilt_init(p, geom, offset_px: float, timings: Optional[dict] = None):
             timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
     est = rs.estimate
     what = est.describe()
+    sd_px = _row_sums_sd_px(est, geom)
     if (est.significance < TILT_INIT_MIN_SIGNIFICANCE or est.tilt_deg > TILT_INIT_MAX_DEG
-            or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT):
+            or est.moments_fit < TILT_INIT_MIN_MOMENTS_FIT or sd_px > ROW_SUMS_MAX_SD_PX):
         text = (f"{what}: not used (needs at least {TILT_INIT_MIN_SIGNIFICANCE:g} standard deviations, at most "
-                f"{TILT_INIT_MAX_DEG:g}° and {100 * TILT_INIT_MIN_MOMENTS_FIT:.0f}% sinusoidal moments); the stages started "
+                f"{TILT_INIT_MAX_DEG:g}°, {100 * TILT_INIT_MIN_MOMENTS_FIT:.0f}% sinusoidal moments and the tilt held to "
+                f"{ROW_SUMS_MAX_SD_PX:g} px at the detector's top and bottom rows, here {sd_px:.2f} px); the stages started "
                 "from the untilted axis")
         log.info("axis tilt from the row sums %s", text)
         return None, text, rs
