@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pdvc.calibration import diagnose_residual
+from pdvc.calibration import diagnose_residual, sample_outline
 
 
 def test_pure_noise_is_noise():
@@ -65,3 +65,42 @@ def test_bright_groups_of_a_few_pixels_are_outliers():
     d = diagnose_residual(noise + blobs, 1.0)
     assert d.outliers == pytest.approx(np.sum(blobs**2) / np.sum((noise + blobs) ** 2), rel=0.15)
     assert diagnose_residual(noise - blobs, 1.0).outliers < 0.01
+
+
+def _rod_shadow(n_views=12, n_rows=8, n_cols=60, centre=30.0, radius=15.0):
+    u = np.arange(n_cols) - centre
+    prof = 2 * np.sqrt(np.clip(radius**2 - u**2, 0, None)) * 0.1
+    return np.broadcast_to(prof, (n_views, n_rows, n_cols)).astype(np.float32)
+
+
+def test_the_outline_is_where_the_shadow_meets_the_air():
+    out = sample_outline(_rod_shadow())
+    edge = np.flatnonzero(out)
+    # the shadow covers columns 16-44 above a tenth of its height; the outline is its two ends, 3 columns each side
+    assert edge.min() >= 10 and edge.max() <= 50, edge
+    assert out[14:18].all() and out[43:47].all()
+    assert not out[:10].any() and not out[22:38].any() and not out[51:].any()
+    # no shadow (flat data): no outline
+    assert not sample_outline(np.ones((3, 4, 20))).any()
+
+
+def test_a_column_pattern_at_the_sample_outline_is_not_counted_as_the_detectors():
+    """A clean rod centred on the axis leaves the reconstruction's model error of its edge at the same columns in
+    every view: a pattern of the columns, but none of the detector's (docs/method.md §5.40)."""
+    rng = np.random.default_rng(5)
+    data = _rod_shadow()
+    noise = rng.normal(0, 1.0, data.shape)
+    edge = np.zeros(data.shape[2])
+    edge[[15, 16, 44, 45]] = [3.0, -4.0, -4.0, 3.0]
+    d = diagnose_residual(noise + edge, 1.0, data=data)
+    assert d.column_pattern > 0.3
+    assert d.column_pattern_off_outline < 0.02
+    # a detector's pattern spreads over every column: the share off the outline is about the share everywhere
+    white = rng.normal(0, 0.8, data.shape[2])
+    d = diagnose_residual(noise + white, 1.0, data=data)
+    assert d.column_pattern_off_outline == pytest.approx(d.column_pattern, rel=0.3)
+    assert d.column_pattern > 0.2
+    # without the data it is not measured
+    assert diagnose_residual(noise + white, 1.0).column_pattern_off_outline is None
+    with pytest.raises(ValueError, match="residual's shape"):
+        diagnose_residual(noise, 1.0, data=data[:, :, :-1])

@@ -36,7 +36,7 @@ from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps
 from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
 from ._rowsums import AxisTiltEstimate, RowSumConsistency, VerticalMotion, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
-from ._diagnose import ResidualDiagnosis, diagnose_residual
+from ._diagnose import ResidualDiagnosis, diagnose_residual, sample_outline
 from ._epipolar import EpipolarFit, EpipolarViews, epipolar_refine, epipolar_residuals, epipolar_views, view_pairs
 from ._truncation import (
     Truncation,
@@ -123,6 +123,7 @@ __all__ = [
     "field_cover",
     "Truncation",
     "diagnose_residual",
+    "sample_outline",
     "ResidualDiagnosis",
     "compare_models",
     "cross_validated_misfit",

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..io._zingers import isolated_outliers, outlier_blobs
 
-__all__ = ["diagnose_residual", "ResidualDiagnosis"]
+__all__ = ["diagnose_residual", "ResidualDiagnosis", "sample_outline"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,12 @@ class ResidualDiagnosis:
     structure : float
         The rest: the sample's own structure, i.e. motion the model does not
         hold, or material the volume does not hold.
+    column_pattern_off_outline : float or None
+        The column pattern's share of the residual in the columns away from
+        the sample's outline (:func:`sample_outline`), where a detector's
+        fixed pattern stays and the reconstruction's model error at the
+        sample's edge does not; None when the data were not given or too
+        few columns are away from the outline.
     """
 
     chi: float
@@ -54,6 +60,7 @@ class ResidualDiagnosis:
     outliers: float
     noise: float
     structure: float
+    column_pattern_off_outline: float | None = None
 
     def describe(self) -> str:
         parts = [
@@ -75,7 +82,47 @@ def _sum_squares(a) -> float:
     return float(sum(np.einsum("i,i->", x, x, dtype=np.float64) for x in rows))
 
 
-def diagnose_residual(residual, noise_variance: float, weights=None) -> ResidualDiagnosis:
+#: sample_outline: a column is inside the sample's shadow where the views' mean profile rises above this fraction of its
+#: range; the outline is where that changes, widened by OUTLINE_MARGIN columns each side (docs/method.md §5.40)
+OUTLINE_FRACTION = 0.1
+OUTLINE_MARGIN = 3
+#: column_pattern_off_outline is measured only where at least this fraction of the columns is away from the outline
+OFF_OUTLINE_MIN = 0.25
+
+
+def sample_outline(data, *, fraction: float = OUTLINE_FRACTION, margin: int = OUTLINE_MARGIN) -> np.ndarray:
+    """The detector columns ``(n_cols,)`` bool at the outline of the sample's shadow in the mean of the views.
+
+    ``data`` (n_views, n_rows, n_cols) line integrals, read a view at a
+    time, not modified. The mean over views and rows (a running median over
+    5 columns) is inside the shadow where it rises above ``fraction`` of its
+    range; the columns where inside turns to outside, and ``margin``
+    columns each side, are the outline. A sample centred on the axis keeps
+    its edge at those columns in every view, and with it what the
+    reconstruction does not reproduce of a sharp edge: a pattern of the
+    columns that is not the detector's.
+    """
+    from scipy.ndimage import binary_dilation, median_filter
+
+    d = data
+    if getattr(d, "ndim", 0) != 3:
+        raise ValueError(f"data must be (n_views, n_rows, n_cols), got shape {getattr(d, 'shape', None)}")
+    prof = np.zeros(d.shape[2])
+    for v in range(d.shape[0]):
+        prof += np.asarray(d[v], np.float64).sum(axis=0)
+    prof = median_filter(prof / (d.shape[0] * d.shape[1]), size=5, mode="nearest")
+    lo, hi = float(prof.min()), float(prof.max())
+    if not hi > lo:
+        return np.zeros(d.shape[2], bool)
+    inside = prof - lo > fraction * (hi - lo)
+    turn = np.zeros_like(inside)
+    change = inside[1:] != inside[:-1]
+    turn[1:] |= change
+    turn[:-1] |= change
+    return binary_dilation(turn, iterations=margin) if margin > 0 and turn.any() else turn
+
+
+def diagnose_residual(residual, noise_variance: float, weights=None, data=None) -> ResidualDiagnosis:
     """Split the residual ``(n_views, n_rows, n_cols)`` into the parts of :class:`ResidualDiagnosis`.
 
     The parts are taken one after the other from what is left: the mean of
@@ -85,7 +132,9 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     is a line) and the bright groups within 3 x 3 px with nothing beyond 3σ
     around them (a zinger whose light spread); the noise is
     ``n γ²`` (capped at what is left), the structure the rest. Pixels with
-    zero weight are left out.
+    zero weight are left out. With ``data`` (the line integrals the residual
+    is of), also the column pattern's share in the columns away from the
+    sample's outline (``column_pattern_off_outline``).
     """
     # one float32 copy, changed in place (a scan's residual is the size of its data: no float64 or temporary copies),
     # sums accumulated in float64
@@ -97,6 +146,16 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     total = _sum_squares(r)
     if not total > 0:
         return ResidualDiagnosis(0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+    away = None
+    if data is not None:
+        if getattr(data, "shape", None) != r.shape:
+            raise ValueError(f"data must have the residual's shape {r.shape}, got {getattr(data, 'shape', None)}")
+        away = ~sample_outline(data)
+        if away.mean() < OFF_OUTLINE_MIN:
+            away = None
+        else:
+            # each column's energy, a view at a time (no full-size temporary)
+            e_cols = sum(np.einsum("ij,ij->j", x, x, dtype=np.float64) for x in r)
     cnt_v = np.maximum(w.sum(axis=(1, 2)), 1)
     m = r.sum(axis=(1, 2), dtype=np.float64) / cnt_v
     e_view = float(np.sum(m**2 * cnt_v))
@@ -105,6 +164,8 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     cnt_c = np.maximum(w.sum(axis=(0, 1)), 1)
     c = r.sum(axis=(0, 1), dtype=np.float64) / cnt_c
     e_col = float(np.sum(c**2 * cnt_c))
+    e_away = float(e_cols[away].sum()) if away is not None else 0.0
+    col_away = float(np.sum((c**2 * cnt_c)[away]) / e_away) if e_away > 0 else None
     r -= c[None, None, :].astype(np.float32)
     r[off] = 0.0
     cnt_r = np.maximum(w.sum(axis=(0, 2)), 1)
@@ -130,4 +191,4 @@ def diagnose_residual(residual, noise_variance: float, weights=None) -> Residual
     rest = max(total - e_view - e_col - e_row - e_out, 0.0)
     e_noise = min(n_w * float(noise_variance), rest)
     shares = np.array([e_view, e_col, e_row, e_out, e_noise, rest - e_noise]) / total
-    return ResidualDiagnosis(float(np.sqrt(total / (n_w * noise_variance))), *map(float, shares))
+    return ResidualDiagnosis(float(np.sqrt(total / (n_w * noise_variance))), *map(float, shares), col_away)

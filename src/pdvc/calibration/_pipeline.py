@@ -345,9 +345,11 @@ def calibrate(
         nominal geometry. ``"on"``: subtract it from every view before
         calibrating (:func:`pdvc.io.remove_rings`); ``"auto"``: when it
         holds ``RING_SHARE`` of the residual at the calibrated geometry
-        or more, and more than the sample's structure does
-        (:class:`ResidualDiagnosis`: a pattern of the columns), subtract
-        it and calibrate again (``docs/method.md`` §5.13). The
+        or more in the columns away from the sample's outline (where a
+        sharp edge leaves the reconstruction's own model error), and more
+        than the sample's structure does (:class:`ResidualDiagnosis`: a
+        pattern of the columns), subtract it and calibrate again
+        (``docs/method.md`` §5.13, §5.40). The
         projections given are not modified; the calibration and its final
         volume use the copy.
     roi : {"auto", "on", "off"}
@@ -528,18 +530,21 @@ def calibrate(
     res = _replace(res, elapsed_s=time.perf_counter() - t_start)
     share = _fixed_pattern_share(res)
     if rings == "auto" and share >= RING_SHARE:
-        log.warning("rings: a fixed pattern of the detector holds %.0f%% of the residual at the calibrated geometry "
-                    "(%.0f%% or more: it pulls the poses toward the nominal geometry); it is subtracted from every view "
-                    "and the scan calibrated again (rings = 'auto')", 100 * share, 100 * RING_SHARE)
+        log.warning("rings: a fixed pattern of the detector holds %.0f%% of the residual at the calibrated geometry, "
+                    "away from the sample's outline (%.0f%% or more: it pulls the poses toward the nominal geometry); "
+                    "it is subtracted from every view and the scan calibrated again (rings = 'auto')",
+                    100 * share, 100 * RING_SHARE)
         emit(dict(event="rings", share=share))
         # from where the first pass started: its poses are pulled toward nominal, and a run started there stops short
         again = calibrate(projections, geom, vol_geom, rings="on", **given)
         rings_text = (f"{again.options['rings']}, then calibrated again: a pattern of the columns held {100 * share:.0f}% "
-                      f"of the residual at the geometry of a first pass ({res.elapsed_s:.1f} s)")
+                      f"of the residual away from the sample's outline at the geometry of a first pass "
+                      f"({res.elapsed_s:.1f} s)")
         return _replace(again, elapsed_s=time.perf_counter() - t_start, options=dict(again.options, rings=rings_text),
                         timings=dict(again.timings, first_pass=res.elapsed_s))
     if rings == "off" and share >= RING_SHARE:
-        log.warning("a pattern of the detector columns holds %.0f%% of the residual at the calibrated geometry (rings "
+        log.warning("a pattern of the detector columns holds %.0f%% of the residual at the calibrated geometry, away "
+                    "from the sample's outline (rings "
                     "that pull the poses toward the nominal geometry): rings = 'auto' or 'on' subtracts the detector's "
                     "fixed pattern (docs/method.md)", 100 * share)
     if second_run == "auto":
@@ -1044,20 +1049,25 @@ def _too_large(drv, offset_px, stages):
     return status, message
 
 
-#: rings = "auto": the share of the residual at the calibrated geometry that a pattern of the detector columns must hold
-#: for the detector's fixed pattern to be removed and the scan calibrated again (docs/method.md §5.13)
+#: rings = "auto": the share of the residual at the calibrated geometry that a pattern of the detector columns must hold,
+#: away from the sample's outline, for the detector's fixed pattern to be removed and the scan calibrated again
+#: (docs/method.md §5.13, §5.40: tuning scans without rings at most 0.043, with rings of 0.02 RMS 0.08-0.37; 0.06
+#: fired on more of these and made the tuning half turns worse)
 RING_SHARE = 0.10
 
 
 def _fixed_pattern_share(res) -> float:
-    """The share of the residual at ``res``'s geometry that is a pattern of the detector columns, the same in every view
-    (:class:`ResidualDiagnosis`; at most 5 % on the tuning scans without rings, 15-48 % with rings of 0.02 RMS); 0
-    when the sample's structure holds more (motion the model did not hold, e.g. an axis offset, also leaves a pattern
-    of the columns)."""
+    """The share of the residual at ``res``'s geometry that is a pattern of the detector columns, the same in every view,
+    in the columns away from the sample's outline where the data tell them (:class:`ResidualDiagnosis`; at most 4.3 %
+    on the tuning scans without rings, 8-37 % with rings of 0.02 RMS; docs/method.md §5.40): a rod centred on the axis
+    keeps its edge at the same columns in every view, and what the reconstruction does not reproduce of it there
+    (up to 64 % of the residual of a clean rod) is no fixed pattern of the detector. 0 when the sample's structure
+    holds more than the column pattern (motion the model did not hold, e.g. an axis offset, also leaves a pattern of
+    the columns)."""
     d = res.residual[1] if getattr(res, "residual", None) else None
     if d is None or d.column_pattern <= d.structure:
         return 0.0
-    return float(d.column_pattern)
+    return float(d.column_pattern if d.column_pattern_off_outline is None else d.column_pattern_off_outline)
 
 
 def _rings(p, noise_variance, timings):
@@ -1270,7 +1280,7 @@ def _fit(scaled, poses, stage: Stage, volume=None, made=None, own=False):
     elif volume is None or stage.scale != 1 or stage.oversample != 1:
         volume = correlation_volume(p, vol_geom, g, stage.replace(reconstruct="fdk"))
     res = p - forward(volume, refined_grid(vol_geom, stage.oversample), g)
-    return _snr_of(p, res, weights), diagnose_residual(res, gamma2, weights)
+    return _snr_of(p, res, weights), diagnose_residual(res, gamma2, weights, data=p)
 
 
 _BACKGROUND_NAMES = {0: "an offset", 1: "a plane", 2: "a quadratic"}

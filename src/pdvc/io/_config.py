@@ -146,7 +146,7 @@ that type needs) are required; everything else has the default shown.
                                 # their neighbours' median
     rings = "auto"              # "auto" | "on" | "off": subtract the detector's fixed pattern (a flat field wrong at
                                 # some columns: rings) from every view; "auto": when it holds 10 % of the residual at
-                                # the calibrated geometry, and then calibrate again
+                                # the calibrated geometry away from the sample's outline, and then calibrate again
     roi = "auto"                # "auto" | "on" | "off": a sample wider than the field of view (region-of-interest
                                 # scan): subtract what the material outside the volume adds on average to every view;
                                 # "auto": when the nominal reconstruction shows material at the volume's sides and
