@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ShapeError
 from ..io._zingers import isolated_outliers, outlier_blobs
 
 __all__ = ["diagnose_residual", "ResidualDiagnosis", "sample_outline"]
@@ -106,7 +107,7 @@ def sample_outline(data, *, fraction: float = OUTLINE_FRACTION, margin: int = OU
 
     d = data
     if getattr(d, "ndim", 0) != 3:
-        raise ValueError(f"data must be (n_views, n_rows, n_cols), got shape {getattr(d, 'shape', None)}")
+        raise ShapeError(f"data must be (n_views, n_rows, n_cols), got shape {getattr(d, 'shape', None)}")
     prof = np.zeros(d.shape[2])
     for v in range(d.shape[0]):
         prof += np.asarray(d[v], np.float64).sum(axis=0)
@@ -149,7 +150,7 @@ def diagnose_residual(residual, noise_variance: float, weights=None, data=None) 
     away = None
     if data is not None:
         if getattr(data, "shape", None) != r.shape:
-            raise ValueError(f"data must have the residual's shape {r.shape}, got {getattr(data, 'shape', None)}")
+            raise ShapeError(f"data must have the residual's shape {r.shape}, got {getattr(data, 'shape', None)}")
         away = ~sample_outline(data)
         if away.mean() < OFF_OUTLINE_MIN:
             away = None
