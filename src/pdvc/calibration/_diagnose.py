@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ShapeError
+from ..io._rings import mean_of_views
 from ..io._zingers import isolated_outliers, outlier_blobs
 
 __all__ = ["diagnose_residual", "ResidualDiagnosis", "sample_outline"]
@@ -94,8 +95,8 @@ OFF_OUTLINE_MIN = 0.25
 def sample_outline(data, *, fraction: float = OUTLINE_FRACTION, margin: int = OUTLINE_MARGIN) -> np.ndarray:
     """The detector columns ``(n_cols,)`` bool at the outline of the sample's shadow in the mean of the views.
 
-    ``data`` (n_views, n_rows, n_cols) line integrals, read a view at a
-    time, not modified. The mean over views and rows (a running median over
+    ``data`` (n_views, n_rows, n_cols) line integrals, read in chunks of
+    views, not modified. The mean over views and rows (a running median over
     5 columns) is inside the shadow where it rises above ``fraction`` of its
     range; the columns where inside turns to outside, and ``margin``
     columns each side, are the outline. A sample centred on the axis keeps
@@ -108,10 +109,7 @@ def sample_outline(data, *, fraction: float = OUTLINE_FRACTION, margin: int = OU
     d = data
     if getattr(d, "ndim", 0) != 3:
         raise ShapeError(f"data must be (n_views, n_rows, n_cols), got shape {getattr(d, 'shape', None)}")
-    prof = np.zeros(d.shape[2])
-    for v in range(d.shape[0]):
-        prof += np.asarray(d[v], np.float64).sum(axis=0)
-    prof = median_filter(prof / (d.shape[0] * d.shape[1]), size=5, mode="nearest")
+    prof = median_filter(mean_of_views(d).mean(axis=0), size=5, mode="nearest")
     lo, hi = float(prof.min()), float(prof.max())
     if not hi > lo:
         return np.zeros(d.shape[2], bool)

@@ -91,12 +91,19 @@ def ring_pattern(projections, *, width: int = RING_WIDTH) -> np.ndarray:
     n, nr, nc = p.shape
     if nc < w:
         raise ShapeError(f"projections have {nc} columns, fewer than the ring filter's width {w}")
+    mean = mean_of_views(p)
+    return (mean - median_filter(mean, size=(1, w), mode="reflect")).astype(np.float32)
+
+
+def mean_of_views(projections) -> np.ndarray:
+    """The mean over views ``(n_rows, n_cols)`` float64 of ``(n_views, n_rows, n_cols)`` projections, summed in chunks
+    of views (a memory map is never read whole)."""
+    n, nr, nc = projections.shape
     step = max(1, _CHUNK // max(nr * nc * 4, 1))
     total = np.zeros((nr, nc), np.float64)
     for k in range(0, n, step):
-        total += np.asarray(p[k:k + step], np.float64).sum(axis=0)
-    mean = total / n
-    return (mean - median_filter(mean, size=(1, w), mode="reflect")).astype(np.float32)
+        total += np.asarray(projections[k:k + step], np.float64).sum(axis=0)
+    return total / n
 
 
 def remove_rings(projections, *, noise_variance: float = 0.0, width: int = RING_WIDTH) -> tuple[np.ndarray, RingReport]:
