@@ -106,10 +106,11 @@ SIZES = {
 }
 # pdvc.calibrate options: the library's defaults (recipe "default")
 OPTIONS: dict = {}
-# --air: an air level added to every case's line integrals (0: none); --zingers: a fraction of zinger pixels;
+# --air: an air level added to every case's line integrals (0: none); --flat: a flat field that does not match (air at a
+# transmission T, tilted across the columns, issue #10's synchrotron scan); --zingers: a fraction of zinger pixels;
 # --rings: the amplitude of a fixed pattern of the detector (stripes in the sinograms, rings in the volume);
 # --phase, --hardening: what the line-integral model does not hold (edge fringes, cupping), before the noise
-AIR = {"drift": 0.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
+AIR = {"drift": 0.0, "flat": 1.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG);
 # --parallel: every case a parallel scan over a full turn
@@ -194,6 +195,18 @@ def air_level(shape, drift: float):
     k = np.arange(nv)[:, None, None]
     u = np.linspace(-1.0, 1.0, nc)[None, None, :]
     return (drift * k / nv + drift / 3 * u * np.where(k < nv // 2, 1.0, -1.0)).astype(np.float32)
+
+
+def flat_mismatch(shape, transmission: float):
+    """A flat field that does not match the beam, as issue #10's synchrotron scan: the air reads a transmission of
+    ``transmission`` in the middle column, 8 % lower to higher across the columns and 1 % lower at the end of the scan
+    than at its start; in line integrals ``-ln T - ln(1 + 0.08 u) - ln(1 - 0.01 t)``, u in [-1, 1], t in [0, 1]."""
+    import numpy as np
+
+    nv, _, nc = shape
+    t = (np.arange(nv) / max(nv - 1, 1))[:, None, None]
+    u = np.linspace(-1.0, 1.0, nc)[None, None, :]
+    return (-np.log(transmission) - np.log1p(0.08 * u) - np.log1p(-0.01 * t)).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------
@@ -440,6 +453,8 @@ def run_case(c: Case) -> dict:
         p = add_poisson_noise(unmodelled(scan.clean, AIR["phase"], AIR["hardening"]), c.i0, seed=c.seed)
     if AIR["drift"]:
         p = p + air_level(p.shape, AIR["drift"])
+    if AIR["flat"] != 1.0:
+        p = p + flat_mismatch(p.shape, AIR["flat"])
     if AIR["rings"]:
         p = p + ring_pattern(p.shape, AIR["rings"], c.seed)
     if AIR["zingers"]:
@@ -496,6 +511,7 @@ def run_case(c: Case) -> dict:
         label = "default (2)" if twice else "default"
     diff = f" {'+' if how[-1][1] == 'better' else '-'}{how[-1][0]} %" if how else ""
     row["second_run"] = label + diff if second else ""
+    row["air"] = str(res.options.get("air", ""))[:80]
     row["worse"] = bool(row["err_pdvc"] > row["err_nominal"] + 1e-6 or row["snr_gain"] < -1e-6)
     return row
 
@@ -536,6 +552,8 @@ def header(args) -> list:
         f"seed0 {args.seed0}{'; motions ' + args.motions + ' (--motions)' if args.motions else ''}; "
         f"pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
+        + (f"; a flat field that does not match, air at a transmission of {AIR['flat']} (--flat)"
+           if AIR["flat"] != 1.0 else "")
         + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
         + (f", in blobs within {AIR['zinger_size']}x{AIR['zinger_size']} px (--zinger-size)"
            if AIR["zingers"] and AIR["zinger_size"] > 1 else "")
@@ -680,6 +698,10 @@ def main(argv=None) -> int:
     ap.add_argument("--air", type=float, default=0.0, metavar="DRIFT",
                     help="add an air level to the line integrals: 0 -> DRIFT over the scan, a +-DRIFT/3 column ramp "
                          "flipping sign halfway (an imperfect flat field; default 0: none)")
+    ap.add_argument("--flat", type=float, default=1.0, metavar="T",
+                    help="a flat field that does not match, as issue #10's synchrotron scan: the air at a transmission "
+                         "of T in the middle column, 8%% lower to higher across the columns, 1%% lower at the end of "
+                         "the scan (default 1: none)")
     ap.add_argument("--zingers", type=float, default=0.0, metavar="FRACTION",
                     help="zingers: this fraction of the pixels of every view, at random, with line integrals lowered "
                          "by 0.5 to 3 (default 0: none)")
@@ -714,6 +736,9 @@ def main(argv=None) -> int:
                     help="a pdvc.calibrate option, VALUE in TOML syntax (e.g. recipe='\"precession\"', max_outer=6); repeatable")
     args = ap.parse_args(argv)
     AIR["drift"] = float(args.air)
+    if not 0.0 < args.flat <= 1.0:
+        ap.error("--flat must be a transmission in (0, 1]")
+    AIR["flat"] = float(args.flat)
     AIR["zingers"] = float(args.zingers)
     if args.zinger_size < 1 or args.zinger_size % 2 == 0:
         ap.error("--zinger-size must be a positive odd number")
