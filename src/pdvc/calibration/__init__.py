@@ -40,6 +40,7 @@ from ._diagnose import ResidualDiagnosis, diagnose_residual, sample_outline
 from ._epipolar import EpipolarFit, EpipolarViews, epipolar_refine, epipolar_residuals, epipolar_views, view_pairs
 from ._truncation import (
     Truncation,
+    air_columns_span,
     air_to_subtract,
     cylinder_window,
     detect_scan_truncation,
@@ -115,6 +116,7 @@ __all__ = [
     "tilt_poses",
     "truncation_weights",
     "air_to_subtract",
+    "air_columns_span",
     "detect_scan_truncation",
     "detect_truncation",
     "outside_pattern",

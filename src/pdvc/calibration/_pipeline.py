@@ -379,7 +379,7 @@ def calibrate(
         take it for material (FBP turns it into a bright rim at the edge of
         the field) and the calibration for motion. ``"auto"``: when it is
         measurably off 0 and is air (:func:`air_to_subtract`: at most 90 %
-        of the pixels, flat up to the noise, seen in 90 % of the columns),
+        of the pixels, flat up to the noise, seen on both sides of the detector),
         subtract the part the views share (``AirEstimate.fitted``: the
         level and the column profile) and calibrate and reconstruct on that
         copy; what varies from view to view is left to the background

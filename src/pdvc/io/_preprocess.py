@@ -24,14 +24,18 @@ flat. :func:`estimate_air` measures it and :func:`subtract_air` removes it.
 The model: a flat mismatch is a factor ``b_k · A(c)`` on the intensity (a
 beam intensity per view, a detector profile), so in line integrals it adds
 ``o_k + P(c)``, a per-view offset plus a column profile shared by all views.
+A beam whose profile drifts across the detector also tilts the air from one
+view to the next: each view has a tilt ``g_k x`` of its own as well, zero on
+average over the views (what they share belongs to ``P``).
 ``P`` is a low-order polynomial (degree 2 by default, zero mean over the
 columns) in the column index, fitted jointly to the air pixels of every
 view: a column never in air at one view is in air at others, and the
 columns that the sample always covers (the middle of a centred sample) are
 bridged smoothly instead of guessed view by view. Air pixels are found
-iteratively: the lowest decile of each view to start, then the pixels
+iteratively: the lowest decile of each view (once a first profile, the lower
+envelope of the columns, is taken out) to start, then the pixels
 within ``[-5 s, +3 s]`` of the current model (``s`` the robust spread of
-the air residuals: their noise), refitting ``o_k`` and ``P``
+the air residuals: their noise), refitting ``o_k``, ``g_k`` and ``P``
 until the selection stops changing. A view without air (fewer than 0.5 %
 of its pixels) takes the offset interpolated between its neighbours.
 Variation along rows is not modelled.
@@ -739,6 +743,93 @@ def _robust_std(x: np.ndarray, max_size: int = 500_000) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
+#: :func:`estimate_air`'s first column profile is the lower envelope of this quantile of each column (over views and
+#: rows): a column that sees air in at least this fraction of its pixels reads about the air there
+ENVELOPE_QUANTILE = 0.05
+#: ... in at most this many blocks of consecutive views (of 8 views at least)
+ENVELOPE_BLOCKS = 8
+
+
+#: a view's tilt of the air is fitted where the columns of its air pixels spread by at least this variance in ``x``
+#: (-1 .. 1 over the detector; 1/3 for air in every column, 0.6 for air at both sides of a rod half as wide)
+TILT_MIN_SPREAD = 0.05
+
+
+def _view_lines(sel, R, x, good, noise_std: float, *, tilt: bool = True):
+    """Per-view least squares of the selected ``R`` on ``(1, x)``: offsets ``o`` (views without air ``good``
+    interpolated from their neighbours) and tilts ``g``, zero on average over the views that have one (0 where the
+    air's columns spread by less than ``TILT_MIN_SPREAD`` in ``x``, or with ``tilt=False``).
+
+    The tilts are kept only where they vary from view to view beyond their noise: their χ² about 0 (each tilt over
+    its standard deviation ``noise_std / sqrt(n var)``), per view, above ``1 + 3 sqrt(2 / m)`` for ``m`` views.
+    Tilts that are noise alone would add their noise to every pixel of the background subtracted."""
+    w = sel.sum(axis=1).astype(np.float64)  # (nv, nc) selected pixels per view and column
+    y = np.where(sel, R, 0.0).sum(axis=1)
+    n = np.maximum(w.sum(axis=1), 1.0)
+    mx, my = (w @ x) / n, y.sum(axis=1) / n
+    var = (w @ (x * x)) / n - mx**2
+    g = np.zeros(n.size)
+    fit = good & (var >= TILT_MIN_SPREAD) if tilt else np.zeros(n.size, dtype=bool)
+    if fit.any():
+        g[fit] = ((y @ x) / n - mx * my)[fit] / var[fit]
+        g[fit] -= np.average(g[fit], weights=n[fit])
+        m = int(fit.sum())
+        chi2 = float(np.mean(g[fit] ** 2 * n[fit] * var[fit])) / max(float(noise_std), 1e-12) ** 2
+        if m < 3 or chi2 < 1.0 + 3.0 * np.sqrt(2.0 / m):
+            g[:] = 0.0
+        elif not fit.all():
+            # a view whose air lies on one side takes its neighbours' tilt, so that the next selection can reach
+            # the other side (where a flat's tilt changes, the first one saw one side of some views only)
+            g = np.interp(np.arange(g.size), np.flatnonzero(fit), g[fit])
+    o = np.where(good, my - g * mx, np.nan)
+    return np.interp(np.arange(o.size), np.flatnonzero(good), o[good]), g
+
+
+def _runs(mask: np.ndarray, length: int) -> np.ndarray:
+    """``mask`` without its runs of True shorter than ``length``."""
+    out = mask.copy()
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < length:
+            out[a:b] = False
+    return out
+
+
+def _lower_envelope(q: np.ndarray, V: np.ndarray, noise_std: float, max_iter: int = 10) -> np.ndarray:
+    """The polynomial ``V @ c`` through the lower envelope of ``q`` (one value per column, ``V``'s rows).
+
+    Material only adds to the air. The columns within 2 noise std of the lower convex hull of ``(column, q)`` are
+    fitted first, then those within 2 noise std above the fit, until they stop changing; only runs of at least 3
+    such columns count (a hull always ends at both end columns, where a sample may stand); zeros when fewer than
+    twice the polynomial's terms are left. (A least-squares start through every column followed a sample's bump
+    with its curvature and kept it.)
+    """
+    n = q.size
+    x = np.arange(n, dtype=np.float64)
+    ok = np.isfinite(q)
+    if ok.sum() < 2 * V.shape[1]:
+        return np.zeros(n)
+    hx, hq = [], []
+    for xi, qi in zip(x[ok], q[ok]):  # Andrew's monotone chain, lower half
+        while len(hx) >= 2 and (hx[-1] - hx[-2]) * (qi - hq[-2]) - (hq[-1] - hq[-2]) * (xi - hx[-2]) <= 0:
+            hx.pop()
+            hq.pop()
+        hx.append(xi)
+        hq.append(qi)
+    tol = 2.0 * max(float(noise_std), 1e-12)
+    keep = _runs(ok & (q - np.interp(x, hx, hq) <= tol), 3)
+    fit = np.zeros(n)
+    for _ in range(max_iter):
+        if keep.sum() < 2 * V.shape[1]:
+            return np.zeros(n)
+        fit = V @ np.linalg.lstsq(V[keep], q[keep], rcond=None)[0]
+        new = _runs(ok & (q - fit <= tol), 3)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return fit
+
+
 def _noise_std(s: np.ndarray) -> float:
     """Pixel noise std from neighbour differences along the rows (robust: edges are a minority)."""
     if s.shape[-1] < 2:
@@ -784,6 +875,10 @@ class AirEstimate:
         Columns with air in at least some views (finite ``profile``).
     views_without_air : tuple of int
         Views with too little air (offset interpolated from neighbours).
+    per_view_tilt : (n_views,) float64 array or None
+        ``g_k``: each view's tilt of the air across the columns, per unit of
+        ``x`` (-1 .. 1 over the detector), zero on average over the views;
+        0 where a view's air spans too few columns to tell. None: no tilts.
     """
 
     found: bool
@@ -798,6 +893,7 @@ class AirEstimate:
     air_fraction: float
     n_air_columns: int
     views_without_air: tuple
+    per_view_tilt: "np.ndarray | None" = None
 
     @property
     def transmission(self) -> float:
@@ -825,8 +921,11 @@ class AirEstimate:
         return abs(self.level) > max(AIR_TOLERANCE, 3.0 * self.level_std) or (hi - lo) > AIR_COLUMN_TOLERANCE
 
     def background(self) -> np.ndarray:
-        """The fitted air of every view and column, ``(n_views, n_cols)`` float64: ``o_k + P(c)``."""
-        return self.per_view[:, None] + (self.fitted - self.level)[None, :]
+        """The fitted air of every view and column, ``(n_views, n_cols)`` float64: ``o_k + g_k x + P(c)``."""
+        out = self.per_view[:, None] + (self.fitted - self.level)[None, :]
+        if self.per_view_tilt is not None and self.fitted.size > 1:
+            out = out + self.per_view_tilt[:, None] * np.linspace(-1.0, 1.0, self.fitted.size)[None, :]
+        return out
 
     def summary(self) -> str:
         """One line for logs, notes and reports."""
@@ -838,8 +937,11 @@ class AirEstimate:
             f"air level {self.level:.4g} in the line integrals (transmission {self.transmission:.3f}), median over "
             f"{self.per_view.size} views (view to view spread {_robust_std(self.per_view):.2g}); across columns "
             f"{lo:.4g} .. {hi:.4g} measured in {self.n_air_columns} of {self.profile.size} columns "
-            f"(degree-{self.degree} fit {flo:.4g} .. {fhi:.4g}); noise std {self.noise_std:.2g}; "
-            f"{100 * self.air_fraction:.0f}% of the pixels are air"
+            f"(degree-{self.degree} fit {flo:.4g} .. {fhi:.4g}); "
+            + (f"a tilt across the columns that changes from view to view (RMS "
+               f"{np.sqrt(np.mean(self.per_view_tilt ** 2)):.2g} from the middle column to an end); "
+               if self.per_view_tilt is not None and np.any(self.per_view_tilt) else "")
+            + f"noise std {self.noise_std:.2g}; {100 * self.air_fraction:.0f}% of the pixels are air"
         )
 
     def problem(self) -> str | None:
@@ -880,12 +982,14 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
 
     Notes
     -----
-    The model is ``p[k, r, c] = o_k + P(c) + sample + noise`` with the
-    sample >= 0; air pixels are those within ``[-5 s, +3 s]`` of
-    ``o_k + P(c)`` (``s`` the robust spread of the air residuals: their
-    noise), found iteratively from the lowest decile of each view.
-    Dead pixels and zingers fall outside the window; the level is a median.
-    See the module docstring for why a per-view offset plus a column profile.
+    The model is ``p[k, r, c] = o_k + g_k x + P(c) + sample + noise`` with
+    the sample >= 0 (``g_k`` zero unless the views' tilts vary beyond their
+    noise); air pixels are those within ``[-5 s, +3 s]`` of the model (``s``
+    the robust spread of the air residuals: their noise), found iteratively
+    from the lowest decile of each view once the lower envelope of the
+    columns is taken out. Dead pixels and zingers fall outside the window;
+    the level is a median. See the module docstring for why a per-view
+    offset and tilt plus a column profile.
     """
     arr = np.asarray(p)
     if arr.ndim != 3 or min(arr.shape) < 1:
@@ -903,10 +1007,25 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
     deg = min(degree, nc - 1)
     V = np.vander(x, deg + 1, increasing=True)  # (nc, deg + 1)
 
-    sel = S <= np.quantile(S.reshape(nv, -1), 0.1, axis=1)[:, None, None]
+    # the first selection: the lowest decile of each view once a first column profile is taken out, the lower
+    # envelope of the columns over a block of consecutive views. Without it, a flat field that tilts across the
+    # detector (issue #10's synchrotron scan: 8 % of transmission from one side to the other, 0.16 in line integrals
+    # against a noise of 0.004) put every view's lowest decile in the last 9 of 56 columns, the degree-2 fit through
+    # them ran off elsewhere and the selection emptied: no air found. Blocks, since a flat that drifts across the
+    # detector tilts the air differently over the scan (one envelope for all views kept each view's selection on the
+    # side its tilt lowers, and the tilt out of sight)
+    noise0 = _noise_std(S)
+    D = np.empty_like(S)
+    for blk in np.array_split(np.arange(nv), max(1, min(ENVELOPE_BLOCKS, nv // 8))):
+        q = np.quantile(S[blk], ENVELOPE_QUANTILE, axis=(0, 1))
+        D[blk] = S[blk] - _lower_envelope(q, V, noise0)
+    sel = D <= np.quantile(D.reshape(nv, -1), 0.1, axis=1)[:, None, None]
     P = np.zeros(nc)
     coef = np.zeros(deg + 1)
     o = np.zeros(nv)
+    g = np.zeros(nv)
+    X = x[None, None, :]
+    s_noise = noise0  # the air residuals' spread from the first pass on
     good = np.ones(nv, dtype=bool)
     min_px = max(3, int(np.ceil(0.005 * per_view_px)))
     for _ in range(max_iter):
@@ -914,37 +1033,38 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
         good = nsel >= min_px
         if not good.any():
             break
-        # per-view offsets: mean of the selected residuals (the window already trims outliers)
-        o_sum = np.where(sel, S - P, 0.0).reshape(nv, -1).sum(axis=1)
-        o = np.where(good, o_sum / np.maximum(nsel, 1), np.nan)
-        o = np.interp(np.arange(nv), np.flatnonzero(good), o[good])
-        # column profile: least squares of (p - o_k) on the polynomial, over the selected pixels
+        # per-view offsets and tilts: least squares of the selected residuals on (1, x), the tilts' mean over the
+        # views left to P (the window already trims outliers)
+        o, g = _view_lines(sel, S - P, x, good, s_noise, tilt=deg >= 1)
+        # column profile: least squares of (p - o_k - g_k x) on the polynomial, over the selected pixels
         w = sel.sum(axis=(0, 1)).astype(np.float64)
-        ysum = np.where(sel, S - o[:, None, None], 0.0).sum(axis=(0, 1))
+        ysum = np.where(sel, S - o[:, None, None] - g[:, None, None] * X, 0.0).sum(axis=(0, 1))
         if np.count_nonzero(w) > deg:
             coef = np.linalg.lstsq(V.T @ (w[:, None] * V), V.T @ ysum, rcond=None)[0]
             P = V @ coef
             P -= P.mean()
-        res = S - o[:, None, None] - P
+        res = S - o[:, None, None] - g[:, None, None] * X - P
         s = max(_robust_std(res[sel], 200_000), 1e-6 * (1.0 + abs(float(np.median(o)))))
+        s_noise = s
         new = (res > -5.0 * s) & (res < 3.0 * s)
         changed = np.count_nonzero(new != sel)
         sel = new
         if changed <= 1e-4 * sel.size:
             break
 
+    good = sel.reshape(nv, -1).sum(axis=1) >= min_px  # of the last selection (a view may have lost its air in it)
     found = bool(good.any()) and sel.mean() >= 0.001
     if not found:
         nan = np.full(nc, np.nan)
         return AirEstimate(False, float("nan"), np.full(nv, np.nan), nan, nan.copy(), tuple(float(c) for c in coef),
                            deg, _noise_std(S), float("nan"), float(sel.mean()), 0, tuple(range(nv)))
     # final offsets as medians (robust), then the measured per-column profile
-    R = np.where(sel, S - P, np.nan).reshape(nv, -1)
+    R = np.where(sel, S - P - g[:, None, None] * X, np.nan).reshape(nv, -1)
     med = np.full(nv, np.nan)
     med[good] = np.nanmedian(R[good], axis=1)
     o = np.interp(np.arange(nv), np.flatnonzero(good), med[good])
     level = float(np.median(o[good]))
-    Y = np.where(sel, S - o[:, None, None], np.nan).transpose(2, 0, 1).reshape(nc, -1)
+    Y = np.where(sel, S - o[:, None, None] - g[:, None, None] * X, np.nan).transpose(2, 0, 1).reshape(nc, -1)
     cnt = sel.sum(axis=(0, 1))
     profile = np.full(nc, np.nan)
     ok = cnt >= 3
@@ -964,6 +1084,7 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
         air_fraction=float(sel.mean()),
         n_air_columns=int(ok.sum()),
         views_without_air=tuple(int(k) for k in np.flatnonzero(~good)),
+        per_view_tilt=g,
     )
 
 
