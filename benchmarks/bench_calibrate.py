@@ -62,6 +62,7 @@ scan), then times ``pdvc.calibrate``.  Printed per size:
     python benchmarks/bench_calibrate.py                          # small, medium (~3-5 min with simulation)
     python benchmarks/bench_calibrate.py --sizes small            # the demo's size only
     python benchmarks/bench_calibrate.py --sizes parallel         # 91 parallel views, 134x160
+    python benchmarks/bench_calibrate.py --sizes parallel --flat 0.69   # with issue #10's flat field (air at 0.69, tilted)
     python benchmarks/bench_calibrate.py --standard               # small, medium, standard (long)
     python benchmarks/bench_calibrate.py --sizes standard --keep-data /tmp/pdvc_bench   # reuse the simulated scan
     python benchmarks/bench_calibrate.py --sizes medium --precession 0.5   # a precessing axis
@@ -168,9 +169,15 @@ def _precession_deg() -> float:
     return float(os.environ.get("PDVC_BENCH_PRECESSION_DEG", "0") or 0)
 
 
+def _flat() -> float:
+    """``--flat``, handed to the child processes through the environment (1: none)."""
+    return float(os.environ.get("PDVC_BENCH_FLAT", "1") or 1)
+
+
 def _data_path(data_dir: str, name: str) -> str:
     prec = f"_prec{_precession_deg():g}" if _precession_deg() else ""
-    return os.path.join(data_dir, f"bench_calibrate_{name}{prec}_seed{SEED}.npy")
+    flat = f"_flat{_flat():g}" if _flat() != 1.0 else ""
+    return os.path.join(data_dir, f"bench_calibrate_{name}{prec}{flat}_seed{SEED}.npy")
 
 
 # --------------------------------------------------------------------------- simulation child
@@ -184,9 +191,14 @@ def child_simulate(name: str, path: str) -> int:
     geom, vg, phantom, rv, t = _problem(name)
     t0 = time.perf_counter()
     scan = simulate_scan(phantom, geom, rotvecs=rv, translations=t, i0=2e4, seed=SEED, supersampling=2)
+    p = scan.projections
+    if _flat() != 1.0:
+        from bench_accuracy import flat_mismatch  # issue #10's flat field, as bench_accuracy.py --flat makes it
+
+        p = p + flat_mismatch(p.shape, _flat())
     dt = time.perf_counter() - t0
     tmp = path + ".part.npy"
-    np.save(tmp, np.asarray(scan.projections, np.float32))
+    np.save(tmp, np.asarray(p, np.float32))
     os.replace(tmp, path)
     print(f"  [{name}] simulated in {dt:.1f} s (analytic projector, supersampling 2) -> {path}", flush=True)
     return 0
@@ -445,6 +457,8 @@ def child_calibrate(name: str, path: str, threads: int, start: str = "nominal") 
     print(f"  reprojection error vs truth (gauge-free, 125 points): nominal {err_nominal:.3f} px -> calibrated {err:.4f} px")
     print(f"  status {res.status.name.lower()} (success {res.success}): {res.message}")
     print(f"  motion model: {res.options.get('model', 'n/a')}")
+    if _flat() != 1.0:
+        print(f"  air: {res.options.get('air', 'n/a')}")
     print(f"  reference (64^3 x 36 views): median {ref_s:.3f} s of {['%.3f' % r for r in ref]} (3 before, 3 after); "
           f"total/reference {total / ref_s:.0f}", flush=True)
     out = dict(
@@ -482,6 +496,9 @@ def main() -> int:
     ap.add_argument("--keep-data", metavar="DIR", help="keep the simulated scans there and reuse them")
     ap.add_argument("--precession", type=float, default=0.0, metavar="DEG",
                     help="add a once-per-turn precession of the axis of this amplitude (default 0: none)")
+    ap.add_argument("--flat", type=float, default=1.0, metavar="T",
+                    help="issue #10's flat field on the simulated scans: air at a transmission of T, 8%% tilted across "
+                         "the columns, 1%% drift over the scan (bench_accuracy.py --flat; default 1: none)")
     ap.add_argument("--start", choices=("nominal", "tilt", "roll"), default="nominal",
                     help="start from the nominal geometry (default), or, as a diagnostic, from the true tilted axis "
                          "without the drift (tilt) or its tilt in the detector plane alone (roll)")
@@ -508,6 +525,10 @@ def main() -> int:
 
     if args.precession:
         os.environ["PDVC_BENCH_PRECESSION_DEG"] = repr(float(args.precession))
+    if not 0.0 < args.flat <= 1.0:
+        ap.error("--flat must be a transmission in (0, 1]")
+    if args.flat != 1.0:
+        os.environ["PDVC_BENCH_FLAT"] = repr(float(args.flat))
     env = dict(os.environ)
     env["NUMBA_NUM_THREADS"] = str(args.threads)
     env.setdefault("OMP_NUM_THREADS", "1")
