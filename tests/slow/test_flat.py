@@ -4,9 +4,9 @@
 The scan is bench_accuracy.py's tuning case 0 (a rod longer than the field of view, 180 views, a 4.2° cone, i0 =
 2·10³, a drift with acceleration), made with the analytic projector. The rod covers the middle 24 of 56 columns in
 every view, so the air's profile is measured on both sides of it and interpolated under it. Before session 43 the
-air estimate found no air (every view's lowest decile lay in the last columns) and, measured, the rule asked for air
-in 90 % of the columns: the air stayed in the data and the run ended 0.72 px from the truth, farther than the nominal
-geometry (0.46 px), as a success (docs/method.md §5.41).
+air estimate found no air (every view's lowest decile lay in the last columns) and the rule asked for air in 90 % of
+the columns: the air stayed in the data and the benchmark's run of this scan (with the second run) ended 0.72 px from
+the truth, farther than the nominal geometry (0.46 px), as a success (docs/method.md §5.41).
 """
 
 from __future__ import annotations
