@@ -110,7 +110,7 @@ OPTIONS: dict = {}
 # transmission T, tilted across the columns, issue #10's synchrotron scan); --zingers: a fraction of zinger pixels;
 # --rings: the amplitude of a fixed pattern of the detector (stripes in the sinograms, rings in the volume);
 # --phase, --hardening: what the line-integral model does not hold (edge fringes, cupping), before the noise
-AIR = {"drift": 0.0, "flat": 1.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
+AIR = {"drift": 0.0, "flat": 1.0, "flat_rows": 0.0, "zingers": 0.0, "zinger_size": 1, "rings": 0.0, "phase": 0.0, "hardening": 0.0}
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG);
 # --parallel: every case a parallel scan over a full turn
@@ -197,16 +197,18 @@ def air_level(shape, drift: float):
     return (drift * k / nv + drift / 3 * u * np.where(k < nv // 2, 1.0, -1.0)).astype(np.float32)
 
 
-def flat_mismatch(shape, transmission: float):
+def flat_mismatch(shape, transmission: float, rows: float = 0.0):
     """A flat field that does not match the beam, as issue #10's synchrotron scan: the air reads a transmission of
     ``transmission`` in the middle column, 8 % lower to higher across the columns and 1 % lower at the end of the scan
-    than at its start; in line integrals ``-ln T - ln(1 + 0.08 u) - ln(1 - 0.01 t)``, u in [-1, 1], t in [0, 1]."""
+    than at its start; in line integrals ``-ln T - ln(1 + 0.08 u) - ln(1 - 0.01 t)``, u in [-1, 1], t in [0, 1].
+    ``rows``: also ``rows`` lower to higher from the top row to the bottom one, ``- ln(1 + rows v)``, v in [-1, 1]."""
     import numpy as np
 
-    nv, _, nc = shape
+    nv, nr, nc = shape
     t = (np.arange(nv) / max(nv - 1, 1))[:, None, None]
     u = np.linspace(-1.0, 1.0, nc)[None, None, :]
-    return (-np.log(transmission) - np.log1p(0.08 * u) - np.log1p(-0.01 * t)).astype(np.float32)
+    v = np.linspace(-1.0, 1.0, nr)[None, :, None]
+    return (-np.log(transmission) - np.log1p(0.08 * u) - np.log1p(-0.01 * t) - np.log1p(rows * v)).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------
@@ -454,7 +456,7 @@ def run_case(c: Case) -> dict:
     if AIR["drift"]:
         p = p + air_level(p.shape, AIR["drift"])
     if AIR["flat"] != 1.0:
-        p = p + flat_mismatch(p.shape, AIR["flat"])
+        p = p + flat_mismatch(p.shape, AIR["flat"], AIR["flat_rows"])
     if AIR["rings"]:
         p = p + ring_pattern(p.shape, AIR["rings"], c.seed)
     if AIR["zingers"]:
@@ -553,6 +555,7 @@ def header(args) -> list:
         f"pdvc.calibrate options {OPTIONS or 'library defaults'}"
         + (f"; air level drifting to {AIR['drift']} (--air)" if AIR["drift"] else "")
         + (f"; a flat field that does not match, air at a transmission of {AIR['flat']} (--flat)"
+           + (f", {AIR['flat_rows']} lower to higher along the rows (--flat-rows)" if AIR["flat_rows"] else "")
            if AIR["flat"] != 1.0 else "")
         + (f"; zingers at a fraction {AIR['zingers']} of the pixels (--zingers)" if AIR["zingers"] else "")
         + (f", in blobs within {AIR['zinger_size']}x{AIR['zinger_size']} px (--zinger-size)"
@@ -702,6 +705,9 @@ def main(argv=None) -> int:
                     help="a flat field that does not match, as issue #10's synchrotron scan: the air at a transmission "
                          "of T in the middle column, 8%% lower to higher across the columns, 1%% lower at the end of "
                          "the scan (default 1: none)")
+    ap.add_argument("--flat-rows", type=float, default=0.0, metavar="R",
+                    help="with --flat: the air also R lower to higher from the top row to the bottom one (a beam "
+                         "that falls off along the rows; default 0)")
     ap.add_argument("--zingers", type=float, default=0.0, metavar="FRACTION",
                     help="zingers: this fraction of the pixels of every view, at random, with line integrals lowered "
                          "by 0.5 to 3 (default 0: none)")
@@ -739,6 +745,11 @@ def main(argv=None) -> int:
     if not 0.0 < args.flat <= 1.0:
         ap.error("--flat must be a transmission in (0, 1]")
     AIR["flat"] = float(args.flat)
+    if args.flat_rows and args.flat == 1.0:
+        ap.error("--flat-rows needs --flat")
+    if not 0.0 <= args.flat_rows < 1.0:
+        ap.error("--flat-rows must be in [0, 1)")
+    AIR["flat_rows"] = float(args.flat_rows)
     AIR["zingers"] = float(args.zingers)
     if args.zinger_size < 1 or args.zinger_size % 2 == 0:
         ap.error("--zinger-size must be a positive odd number")

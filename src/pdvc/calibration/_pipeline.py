@@ -1225,7 +1225,10 @@ def _air(mode, p, timings):
         # the part the views share: what a reconstruction takes for material. What varies from view to view (a
         # drift) is left to the background fitted with the motion (Stage.background), which also takes a plane
         p = p - est.fitted.astype(np.float32)[None, None, :]
-        text = (f"subtracted (the level and the degree-{est.degree} column profile the views share; what varies from "
+        if est.row_profile is not None:  # a flat that does not match along the rows either: shared by the views too
+            p = p - est.row_profile.astype(np.float32)[None, :, None]
+        text = (f"subtracted (the level and the degree-{est.degree} column profile the views share"
+                f"{', and the profile along the rows' if est.row_profile is not None else ''}; what varies from "
                 f"view to view is left to the background per view): {est.summary()}")
         log.warning("air: the rays that miss the sample do not read 0 (a flat field that does not match): %s", text)
     elif est.found and est.significant:

@@ -225,7 +225,10 @@ def detect_scan_truncation(projections, vol_geom: VolumeGeometry, geom: VectorGe
 
     air = estimate_air(projections)
     if air_to_subtract(air, projections):
-        volume = analytic(subtract_background(projections, air.background()), vol_geom, geom)
+        p = subtract_background(projections, air.background())
+        if air.row_profile is not None:
+            p -= air.row_profile.astype(np.float32)[None, :, None]
+        volume = analytic(p, vol_geom, geom)
     elif volume is None:
         volume = analytic(projections, vol_geom, geom)
     return detect_truncation(volume, vol_geom), air

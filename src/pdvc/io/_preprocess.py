@@ -38,7 +38,11 @@ within ``[-5 s, +3 s]`` of the current model (``s`` the robust spread of
 the air residuals: their noise), refitting ``o_k``, ``g_k`` and ``P``
 until the selection stops changing. A view without air (fewer than 0.5 %
 of its pixels) takes the offset interpolated between its neighbours.
-Variation along rows is not modelled.
+A profile along the rows shared by the views (a beam that falls off toward
+the detector's top and bottom) is fitted too, a degree-2 polynomial, where
+it stands out of the noise and spans 0.02 or more (``row_profile``; the
+in-memory :func:`subtract_air` and the calibration subtract it, the chunked
+reader does not).
 
 Flats of one view
 -----------------
@@ -785,6 +789,33 @@ def _view_lines(sel, R, x, good, noise_std: float, *, tilt: bool = True):
     return np.interp(np.arange(o.size), np.flatnonzero(good), o[good]), g
 
 
+#: degree of the air's profile along the rows (fitted where it stands out of the noise)
+ROW_DEGREE = 2
+
+
+def _row_profile(sel, R, Vr, noise_std: float):
+    """The air's profile along the rows examined, ``(Vr @ c, c)``, zero on average over the air pixels: least
+    squares of the selected ``R``'s row means on ``Vr``, kept only where those means vary beyond their noise (their
+    χ² per row about the fit's mean above ``1 + 3 sqrt(2 / m)``, ``m`` rows with air) and the profile spans
+    ``AIR_TOLERANCE`` or more; zeros otherwise."""
+    m_rows = Vr.shape[0]
+    n = sel.sum(axis=(0, 2)).astype(np.float64)
+    ok = n > 0
+    zero = np.zeros(m_rows), np.zeros(Vr.shape[1])
+    if ok.sum() < max(3, Vr.shape[1] + 1):
+        return zero
+    mean = np.where(ok, np.where(sel, R, 0.0).sum(axis=(0, 2)) / np.maximum(n, 1.0), 0.0)
+    mu = float(np.average(mean[ok], weights=n[ok]))
+    chi2 = float(np.mean(n[ok] * (mean[ok] - mu) ** 2)) / max(float(noise_std), 1e-12) ** 2
+    if chi2 < 1.0 + 3.0 * np.sqrt(2.0 / int(ok.sum())):
+        return zero
+    c = np.linalg.lstsq(Vr[ok] * np.sqrt(n[ok])[:, None], (mean[ok] - mu) * np.sqrt(n[ok]), rcond=None)[0]
+    c[0] -= float(np.average(Vr[ok] @ c, weights=n[ok]))
+    if float(np.ptp(Vr @ c)) < AIR_TOLERANCE:
+        return zero  # the rows' means of a sample's data hold structure of their own at 1e-4..1e-3: not a flat's
+    return Vr @ c, c
+
+
 def _runs(mask: np.ndarray, length: int) -> np.ndarray:
     """``mask`` without its runs of True shorter than ``length``."""
     out = mask.copy()
@@ -879,6 +910,12 @@ class AirEstimate:
         ``g_k``: each view's tilt of the air across the columns, per unit of
         ``x`` (-1 .. 1 over the detector), zero on average over the views;
         0 where a view's air spans too few columns to tell. None: no tilts.
+    row_profile : (n_rows,) float64 array or None
+        The air's profile along the detector rows (a degree-2 fit to the
+        rows examined, zero on average over their air pixels, evaluated at
+        every row; ``level + P(c) + row_profile`` is the air), where it stands
+        out of the noise: a beam that falls off toward the top and bottom.
+        None: flat along the rows. Not part of :meth:`background`.
     """
 
     found: bool
@@ -894,6 +931,7 @@ class AirEstimate:
     n_air_columns: int
     views_without_air: tuple
     per_view_tilt: "np.ndarray | None" = None
+    row_profile: "np.ndarray | None" = None
 
     @property
     def transmission(self) -> float:
@@ -918,7 +956,9 @@ class AirEstimate:
         if not self.found:
             return False
         lo, hi = self.fitted_range
-        return abs(self.level) > max(AIR_TOLERANCE, 3.0 * self.level_std) or (hi - lo) > AIR_COLUMN_TOLERANCE
+        rows = 0.0 if self.row_profile is None else float(np.ptp(self.row_profile))
+        return (abs(self.level) > max(AIR_TOLERANCE, 3.0 * self.level_std) or (hi - lo) > AIR_COLUMN_TOLERANCE
+                or rows > AIR_COLUMN_TOLERANCE)
 
     def background(self) -> np.ndarray:
         """The fitted air of every view and column, ``(n_views, n_cols)`` float64: ``o_k + g_k x + P(c)``."""
@@ -941,6 +981,8 @@ class AirEstimate:
             + (f"a tilt across the columns that changes from view to view (RMS "
                f"{np.sqrt(np.mean(self.per_view_tilt ** 2)):.2g} from the middle column to an end); "
                if self.per_view_tilt is not None and np.any(self.per_view_tilt) else "")
+            + (f"along the rows {self.row_profile.min() + self.level:.4g} .. {self.row_profile.max() + self.level:.4g}; "
+               if self.row_profile is not None else "")
             + f"noise std {self.noise_std:.2g}; {100 * self.air_fraction:.0f}% of the pixels are air"
         )
 
@@ -1019,7 +1061,15 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
     for blk in np.array_split(np.arange(nv), max(1, min(ENVELOPE_BLOCKS, nv // 8))):
         q = np.quantile(S[blk], ENVELOPE_QUANTILE, axis=(0, 1))
         D[blk] = S[blk] - _lower_envelope(q, V, noise0)
+    # ... and the lower envelope of the rows examined, the same way: a beam that falls off toward the detector's top
+    # and bottom (a flat field that does not match along the rows) would put every view's decile in its lowest rows
+    yr = 2.0 * rows / max(nr - 1, 1) - 1.0 if nr > 1 else np.zeros(rows.size)
+    degr = min(ROW_DEGREE, rows.size - 1)
+    Vr = np.vander(yr, degr + 1, increasing=True)
+    D -= _lower_envelope(np.quantile(D, ENVELOPE_QUANTILE, axis=(0, 2)), Vr, noise0)[None, :, None]
     sel = D <= np.quantile(D.reshape(nv, -1), 0.1, axis=1)[:, None, None]
+    Rr = np.zeros(rows.size)  # the air's profile along the rows examined (zero mean; 0 unless it stands out)
+    rcoef = np.zeros(degr + 1)
     P = np.zeros(nc)
     coef = np.zeros(deg + 1)
     o = np.zeros(nv)
@@ -1035,15 +1085,16 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
             break
         # per-view offsets and tilts: least squares of the selected residuals on (1, x), the tilts' mean over the
         # views left to P (the window already trims outliers)
-        o, g = _view_lines(sel, S - P, x, good, s_noise, tilt=deg >= 1)
+        o, g = _view_lines(sel, S - P - Rr[None, :, None], x, good, s_noise, tilt=deg >= 1)
         # column profile: least squares of (p - o_k - g_k x) on the polynomial, over the selected pixels
         w = sel.sum(axis=(0, 1)).astype(np.float64)
-        ysum = np.where(sel, S - o[:, None, None] - g[:, None, None] * X, 0.0).sum(axis=(0, 1))
+        ysum = np.where(sel, S - o[:, None, None] - g[:, None, None] * X - Rr[None, :, None], 0.0).sum(axis=(0, 1))
         if np.count_nonzero(w) > deg:
             coef = np.linalg.lstsq(V.T @ (w[:, None] * V), V.T @ ysum, rcond=None)[0]
             P = V @ coef
             P -= P.mean()
-        res = S - o[:, None, None] - g[:, None, None] * X - P
+        Rr, rcoef = _row_profile(sel, S - o[:, None, None] - g[:, None, None] * X - P, Vr, s_noise)
+        res = S - o[:, None, None] - g[:, None, None] * X - P - Rr[None, :, None]
         s = max(_robust_std(res[sel], 200_000), 1e-6 * (1.0 + abs(float(np.median(o)))))
         s_noise = s
         new = (res > -5.0 * s) & (res < 3.0 * s)
@@ -1059,12 +1110,12 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
         return AirEstimate(False, float("nan"), np.full(nv, np.nan), nan, nan.copy(), tuple(float(c) for c in coef),
                            deg, _noise_std(S), float("nan"), float(sel.mean()), 0, tuple(range(nv)))
     # final offsets as medians (robust), then the measured per-column profile
-    R = np.where(sel, S - P - g[:, None, None] * X, np.nan).reshape(nv, -1)
+    R = np.where(sel, S - P - g[:, None, None] * X - Rr[None, :, None], np.nan).reshape(nv, -1)
     med = np.full(nv, np.nan)
     med[good] = np.nanmedian(R[good], axis=1)
     o = np.interp(np.arange(nv), np.flatnonzero(good), med[good])
     level = float(np.median(o[good]))
-    Y = np.where(sel, S - o[:, None, None] - g[:, None, None] * X, np.nan).transpose(2, 0, 1).reshape(nc, -1)
+    Y = np.where(sel, S - o[:, None, None] - g[:, None, None] * X - Rr[None, :, None], np.nan).transpose(2, 0, 1).reshape(nc, -1)
     cnt = sel.sum(axis=(0, 1))
     profile = np.full(nc, np.nan)
     ok = cnt >= 3
@@ -1085,6 +1136,8 @@ def estimate_air(p, *, degree: int = 2, max_rows: int = 16, max_iter: int = 20,
         n_air_columns=int(ok.sum()),
         views_without_air=tuple(int(k) for k in np.flatnonzero(~good)),
         per_view_tilt=g,
+        row_profile=(np.vander(np.linspace(-1.0, 1.0, nr) if nr > 1 else np.zeros(1), degr + 1, increasing=True) @ rcoef
+                     if np.any(rcoef) else None),
     )
 
 
@@ -1145,5 +1198,7 @@ def subtract_air(p, estimate: AirEstimate | None = None, **kwargs) -> tuple[np.n
         log.warning("subtract_air: no air found; nothing subtracted")
         return np.array(arr, dtype=np.float32, copy=True), estimate
     out = subtract_background(arr, estimate.background())
+    if estimate.row_profile is not None and estimate.row_profile.size == out.shape[1]:
+        out -= estimate.row_profile.astype(np.float32)[None, :, None]
     log.info("subtract_air: %s", estimate.summary())
     return out, estimate
