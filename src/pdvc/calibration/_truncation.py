@@ -208,8 +208,9 @@ def detect_scan_truncation(projections, vol_geom: VolumeGeometry, geom: VectorGe
     to every ray, and FBP turns that into a bright rim at the edge of the
     field: a sample inside the volume would then look like a
     region-of-interest scan. When the air is measurably off 0
-    and is air (:func:`air_to_subtract`), the fitted air (a per-view offset
-    plus a column profile) is subtracted and the scan reconstructed again
+    and is air (:func:`air_to_subtract`), the fitted air (per-view offsets and
+    tilts, the column profile and the rows': :func:`pdvc.io.subtract_air`)
+    is subtracted and the scan reconstructed again
     for the test. Otherwise ``volume`` (the nominal reconstruction of
     ``projections``, if the caller has it) is used as it is. A scan whose
     sample covers the detector has no air to measure, and is also tested
@@ -219,16 +220,12 @@ def detect_scan_truncation(projections, vol_geom: VolumeGeometry, geom: VectorGe
     -------
     (Truncation, AirEstimate)
     """
-    from ..io import estimate_air
-    from ..io._preprocess import subtract_background
+    from ..io import estimate_air, subtract_air
     from ..recon import analytic
 
     air = estimate_air(projections)
     if air_to_subtract(air, projections):
-        p = subtract_background(projections, air.background())
-        if air.row_profile is not None:
-            p -= air.row_profile.astype(np.float32)[None, :, None]
-        volume = analytic(p, vol_geom, geom)
+        volume = analytic(subtract_air(projections, air)[0], vol_geom, geom)
     elif volume is None:
         volume = analytic(projections, vol_geom, geom)
     return detect_truncation(volume, vol_geom), air

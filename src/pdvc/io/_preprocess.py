@@ -759,6 +759,15 @@ ENVELOPE_BLOCKS = 8
 TILT_MIN_SPREAD = 0.05
 
 
+def _beyond_noise(weighted_squares: np.ndarray, noise_std: float) -> bool:
+    """Whether terms of variance ``noise_std**2`` each (their squares times their counts, ``weighted_squares``) vary
+    beyond their noise: their χ² per term above ``1 + 3 sqrt(2 / m)`` for ``m`` terms, 3 terms at least."""
+    m = int(np.size(weighted_squares))
+    if m < 3:
+        return False
+    return float(np.mean(weighted_squares)) / max(float(noise_std), 1e-12) ** 2 >= 1.0 + 3.0 * np.sqrt(2.0 / m)
+
+
 def _view_lines(sel, R, x, good, noise_std: float, *, tilt: bool = True):
     """Per-view least squares of the selected ``R`` on ``(1, x)``: offsets ``o`` (views without air ``good``
     interpolated from their neighbours) and tilts ``g``, zero on average over the views that have one (0 where the
@@ -777,9 +786,7 @@ def _view_lines(sel, R, x, good, noise_std: float, *, tilt: bool = True):
     if fit.any():
         g[fit] = ((y @ x) / n - mx * my)[fit] / var[fit]
         g[fit] -= np.average(g[fit], weights=n[fit])
-        m = int(fit.sum())
-        chi2 = float(np.mean(g[fit] ** 2 * n[fit] * var[fit])) / max(float(noise_std), 1e-12) ** 2
-        if m < 3 or chi2 < 1.0 + 3.0 * np.sqrt(2.0 / m):
+        if not _beyond_noise(g[fit] ** 2 * n[fit] * var[fit], noise_std):
             g[:] = 0.0
         elif not fit.all():
             # a view whose air lies on one side takes its neighbours' tilt, so that the next selection can reach
@@ -806,8 +813,7 @@ def _row_profile(sel, R, Vr, noise_std: float):
         return zero
     mean = np.where(ok, np.where(sel, R, 0.0).sum(axis=(0, 2)) / np.maximum(n, 1.0), 0.0)
     mu = float(np.average(mean[ok], weights=n[ok]))
-    chi2 = float(np.mean(n[ok] * (mean[ok] - mu) ** 2)) / max(float(noise_std), 1e-12) ** 2
-    if chi2 < 1.0 + 3.0 * np.sqrt(2.0 / int(ok.sum())):
+    if not _beyond_noise(n[ok] * (mean[ok] - mu) ** 2, noise_std):
         return zero
     c = np.linalg.lstsq(Vr[ok] * np.sqrt(n[ok])[:, None], (mean[ok] - mu) * np.sqrt(n[ok]), rcond=None)[0]
     c[0] -= float(np.average(Vr[ok] @ c, weights=n[ok]))
@@ -817,13 +823,10 @@ def _row_profile(sel, R, Vr, noise_std: float):
 
 
 def _runs(mask: np.ndarray, length: int) -> np.ndarray:
-    """``mask`` without its runs of True shorter than ``length``."""
-    out = mask.copy()
-    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
-    for a, b in zip(edges[::2], edges[1::2]):
-        if b - a < length:
-            out[a:b] = False
-    return out
+    """``mask`` (1-D) without its runs of True shorter than ``length``: a binary opening by a segment that long."""
+    from scipy import ndimage
+
+    return ndimage.binary_opening(mask, structure=np.ones(length, dtype=bool))
 
 
 def _lower_envelope(q: np.ndarray, V: np.ndarray, noise_std: float, max_iter: int = 10) -> np.ndarray:
