@@ -311,3 +311,72 @@ def test_refused_offset_dropped_where_the_nominal_axis_predicts_better():
     before = p.copy()
     assert _checked_init(p, geom, VolumeGeometry((4, N_COLS, N_COLS), voxel_size=PIXEL), 1, info.value) is None
     assert np.array_equal(p, before)
+
+
+# -- a sample wider than the field of view (overlap=True, compare_offsets) ---------
+def _roi(angles, kind="parallel"):
+    # 80 columns: a field of view of radius 40 px, the head's 64 px radius reaches beyond it in every view
+    if kind == "parallel":
+        return parallel(angles, det_shape=(6, 80), pixel=PIXEL)
+    return circular_cone(angles, sod=20.0, odd=20.0, det_shape=(16, 80), pixel=2 * PIXEL)
+
+
+@pytest.mark.parametrize("offset", [1.3, -2.7])
+def test_overlap_finds_the_axis_of_a_sample_wider_than_the_field(offset):
+    geom = _roi(FULL)
+    # exact line integrals: measured within 0.0011 px
+    assert estimate_axis_offset(_scan(geom, offset), geom, overlap=True).offset_px == pytest.approx(offset, abs=0.01)
+    p = _scan(geom, offset, i0=2e4, seed=3)
+    est = estimate_axis_offset(p, geom, overlap=True)
+    assert est.offset_px == pytest.approx(offset, abs=0.1)  # measured 0.048 and 0.045 px off
+    assert np.median(est.pair_correlation) > 0.9
+    # the correlation of whole rows, each less the straight line through its ends, is pulled toward the centre
+    # (the line differs between a view and its opposite when their ends hold material)
+    biased = estimate_axis_offset(p, geom)
+    assert abs(biased.offset_px - offset) > 3 * abs(est.offset_px - offset)
+
+
+def test_overlap_agrees_with_the_default_on_a_sample_inside_the_field():
+    geom = _parallel(FULL)
+    p = _scan(geom, -4.6, i0=2e4, seed=3)
+    a, b = estimate_axis_offset(p, geom), estimate_axis_offset(p, geom, overlap=True)
+    assert b.offset_px == pytest.approx(-4.6, abs=0.05) and b.offset_px == pytest.approx(a.offset_px, abs=0.05)
+
+
+def test_overlap_in_cone_beam_and_many_rows():
+    geom = circular_cone(FULL, sod=20.0, odd=20.0, det_shape=(40, 80), pixel=2 * PIXEL)
+    p = _scan(geom, 1.3)
+    # all 40 rows, averaged in bands of rows before the comparison
+    est = estimate_axis_offset(p, geom, rows=slice(None), overlap=True)
+    assert est.offset_px == pytest.approx(1.3, abs=0.3)
+
+
+def test_compare_offsets_prefers_the_true_axis_and_says_by_how_much():
+    from pdvc.calibration import compare_offsets
+
+    geom = _roi(FULL)
+    p = _scan(geom, 1.3, i0=2e4, seed=3)
+    m = compare_offsets(p, geom, 0.0, 1.3)
+    assert m.second_better and m.t > 10 and m.msd[1] < m.msd[0] and m.n_pairs == 60
+    assert m.offsets_px == (0.0, 1.3)
+    back = compare_offsets(p, geom, 1.3, 0.0)
+    assert not back.second_better and back.t == pytest.approx(-m.t)
+    with pytest.raises(InitError, match="two pairs of opposite views"):
+        compare_offsets(p[:1], parallel(FULL[:1], det_shape=(6, 80), pixel=PIXEL), 0.0, 1.0)
+    with pytest.raises(InitError, match="less than half"):
+        compare_offsets(p, geom, -15.0, 15.0)
+
+
+def test_compare_offsets_on_a_half_turn_without_its_end_point():
+    from pdvc.calibration import compare_offsets
+
+    geom = _roi(np.linspace(0, np.pi, 90, endpoint=False))
+    p = _scan(geom, 1.3, i0=2e4, seed=3)
+    est = estimate_axis_offset(p, geom, overlap=True)
+    # the line through 3 pairs up to 2.5 steps from opposite, extrapolated to 180°: measured 1.67 px
+    assert est.offset_px == pytest.approx(1.3, abs=0.5) and est.mismatch_slope != 0.0
+    m = compare_offsets(p, geom, 0.0, est.offset_px, mismatch_slope=est.mismatch_slope)
+    assert m.second_better and m.n_pairs == 3
+    assert not compare_offsets(p, geom, est.offset_px, 0.0, mismatch_slope=est.mismatch_slope).second_better
+    # full turns: opposite pairs, no slope
+    assert estimate_axis_offset(_scan(_roi(FULL), 1.3), _roi(FULL), overlap=True).mismatch_slope == 0.0

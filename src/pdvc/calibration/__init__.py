@@ -33,7 +33,7 @@ from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
 from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps, jolt_views, reconstruct, refined_grid,
                       run_stages)
-from ._init import AxisOffsetEstimate, InitError, estimate_axis_offset, offset_poses
+from ._init import AxisOffsetEstimate, InitError, MirrorComparison, compare_offsets, estimate_axis_offset, offset_poses
 from ._rowsums import AxisTiltEstimate, RowSumConsistency, VerticalMotion, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual, sample_outline
@@ -108,6 +108,8 @@ __all__ = [
     "AxisOffsetEstimate",
     "InitError",
     "estimate_axis_offset",
+    "compare_offsets",
+    "MirrorComparison",
     "offset_poses",
     "AxisTiltEstimate",
     "RowSumConsistency",
