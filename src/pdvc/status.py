@@ -31,6 +31,7 @@ class Status(enum.IntEnum):
     FIXED_POINT = 8
     CONSISTENCY_GUARD = 9
     ROW_SUMS_GUARD = 10
+    AXIS_OFFSET = 11
     # -- failures ----------------------------------------------------------------
     MAX_ITER = 0
     NO_DESCENT = -1
@@ -66,6 +67,9 @@ _MESSAGES = {
     "stage (the loop passed its best point); the poses with the best consistency are kept",
     Status.ROW_SUMS_GUARD: "stopped: the rounds moved the axis's tilt away from what the row sums of the views say (the "
     "loop walked along the pitch); the poses the row sums agree with best are kept",
+    Status.AXIS_OFFSET: "axis offset only: the calibrated geometry could not be confirmed on this region-of-interest "
+    "scan; the axis offset measured from opposite views, which match each other's mirror image better about it than "
+    "about the nominal axis, is returned (no per-view motion)",
     Status.MAX_ITER: "not converged: the iteration cap was reached while the poses were still moving",
     Status.NO_DESCENT: "not converged: no damped step lowered chi any further; the last accepted poses are kept",
     Status.DIVERGED: "diverged: no round of the stage made the reconstruction fit the data better; "

@@ -97,9 +97,45 @@ def test_roi_on_calibrates_a_foam_wider_than_the_field_better_than_off():
     np.testing.assert_allclose(on.volume, pdvc.recon.fdk(p, vg, on.geometry, padding="edge"), atol=1e-5)
 
 
-def test_roi_scan_at_the_noise_is_undetermined_and_returns_the_nominal_geometry():
+def test_roi_scan_at_the_noise_returns_the_axis_offset_its_opposite_views_confirm():
     # a uniform cylinder wider than the field, noisy, a 0.5 px offset: once the outside's average is gone
-    # the nominal fit is at the noise (chi 1.05): nothing tells a calibrated geometry from it
+    # the nominal fit is at the noise (chi 0.91): the reconstructions cannot tell a calibrated geometry from
+    # it, but each view against its mirrored opposite can tell the axis
+    p, geom, vg, err = _roi_scan(_wide_cylinder(32), 2e3, 0.5)
+    res = pdvc.calibrate(p, geom, vg, roi="on")
+    assert res.status == pdvc.Status.AXIS_OFFSET and res.success
+    assert res.rejected_geometry is not None
+    assert "axis offset only" in res.message and "undetermined: region-of-interest scan: chi" in res.message
+    # measured 0.28 px for 0.5 px (cone beam: the opposite view is only approximately the mirror image)
+    assert 0.15 < res.initial_offset_px < 0.6 and err(res.geometry) < 0.6 * err(geom)
+    np.testing.assert_allclose(res.poses.rotvecs, 0.0)  # an offset, no per-view motion
+
+
+def test_the_axis_offset_is_not_returned_where_its_snr_is_below_the_nominal_one(monkeypatch):
+    from pdvc.calibration import _pipeline
+
+    fit = _pipeline._fit
+
+    def lower(scaled, poses, stage, volume=None, made=None, own=False):
+        snr, d = fit(scaled, poses, stage, volume, made, own)
+        moved = np.any(poses.translations != 0)  # not the nominal geometry: the fallback's (or the stages')
+        return (snr - 100.0, d) if moved and volume is not None and made is None and not own else (snr, d)
+
+    monkeypatch.setattr(_pipeline, "_fit", lower)
+    p, geom, vg, err = _roi_scan(_wide_cylinder(32), 2e3, 0.5)
+    res = pdvc.calibrate(p, geom, vg, roi="on")
+    assert res.status == pdvc.Status.UNDETERMINED and not res.success
+    np.testing.assert_allclose(res.geometry.vectors, geom.vectors)
+    assert "the opposite views' axis offset" in res.message and "not kept either" in res.message
+
+
+def test_roi_scan_at_the_noise_whose_opposite_views_say_nothing_returns_the_nominal_geometry(monkeypatch):
+    from pdvc.calibration import _init
+
+    def refuse(*args, **kwargs):
+        raise _init.InitError("no pair")
+
+    monkeypatch.setattr(_init, "compare_offsets", refuse)
     p, geom, vg, err = _roi_scan(_wide_cylinder(32), 2e3, 0.5)
     res = pdvc.calibrate(p, geom, vg, roi="on")
     assert res.status == pdvc.Status.UNDETERMINED and not res.success

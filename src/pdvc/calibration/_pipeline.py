@@ -365,6 +365,15 @@ def calibrate(
         ``Status.UNDETERMINED``, and one whose calibrated geometry predicts
         views it was not reconstructed from worse than the nominal one
         (:func:`roi_cross_validated_rss`) with ``WORSE_THAN_NOMINAL``.
+        On any scan whose rows' ends hold material (the sample reaches the
+        volume's sides), the coarse axis offset is measured again with the
+        opposite views compared over the columns both hold
+        (:func:`estimate_axis_offset` with ``overlap=True``); where the
+        stages' geometry is then rejected and the opposite views match
+        their mirror images better about that offset than about the
+        nominal axis (:func:`compare_offsets`), that offset is returned
+        with ``Status.AXIS_OFFSET`` instead of the nominal geometry
+        (``docs/method.md`` §5.42).
         ``"auto"``: when the nominal reconstruction shows material at the
         volume's sides (:func:`detect_truncation`)
         and the volume is about as wide as the field of view (its inscribed
@@ -476,6 +485,9 @@ def calibrate(
     weights, trunc = _truncation(truncation, weights, None if air == "auto" else p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
     lateral = roi == "on" or (trunc is not None and trunc.lateral)
+    mirror_start = None  # a region-of-interest scan's axis offset that its opposite views confirm (the fallback)
+    if lateral and offset_px is not None and not resume:
+        poses, offset_px, mirror_start = _roi_start(p, geom, poses, offset_px, timings)
     if tilt is not None:
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
     # the vertical motion the row sums measured: a resumed run holds what its first run held
@@ -526,6 +538,7 @@ def calibrate(
     res = _finish(
         p, geom, vol_geom, vol_initial, drv, stage_list, status, message, gamma2, weights, times, center, backend,
         fix_scale, emit, timings, dict(initial_offset_px=offset_px, options=options, truncation=trunc), p_out=p_out,
+        mirror_start=mirror_start,
     )
     res = _replace(res, elapsed_s=time.perf_counter() - t_start)
     share = _fixed_pattern_share(res)
@@ -1185,6 +1198,43 @@ def _covers_field(geom, vol_geom) -> bool:
     return False
 
 
+def _roi_start(p, geom, poses, offset_px: float, timings):
+    """A region-of-interest scan (material at the rows' ends): the coarse axis offset measured again with the opposite
+    views compared over the columns both hold (:func:`estimate_axis_offset` with ``overlap=True``), and whether their
+    mirror images confirm it against the nominal axis (:func:`compare_offsets`).
+
+    Returns ``(poses, offset_px, mirror_start)``; ``mirror_start`` is ``(offset_px, comparison)`` where the
+    opposite views match better about that offset than about the nominal axis, else None. The correlation of whole
+    rows takes out a straight line through each row's ends, which on such a scan pulls the offset toward the
+    detector's centre (rods of ``bench_accuracy.py --quick --roi 1.0``: -0.20 px found for +1.28 px).
+    """
+    from ._init import compare_offsets, estimate_axis_offset, offset_poses
+
+    t0 = time.perf_counter()
+    try:
+        est = estimate_axis_offset(p, geom, overlap=True)
+    except InitError as exc:
+        log.info("roi: the opposite views compared over the columns both hold give no axis offset (%s); the coarse "
+                 "initialisation's %+.2f px kept", exc, offset_px)
+        return poses, offset_px, None
+    finally:
+        timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
+    log.info("roi: the rows' ends hold material: axis offset %+.2f px from the opposite views compared over the columns "
+             "both hold (the correlation of whole rows said %+.2f px); the stages start there", est.offset_px, offset_px)
+    poses = offset_poses(geom, float(est.offset_px))
+    try:
+        mirror = compare_offsets(p, geom, 0.0, float(est.offset_px), mismatch_slope=est.mismatch_slope)
+    except InitError as exc:
+        log.info("roi: the offset not compared with the nominal axis: %s", exc)
+        return poses, float(est.offset_px), None
+    finally:
+        timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
+    log.info("roi: each view against its mirrored opposite, mean squared difference %.4g with the nominal axis, %.4g "
+             "with the axis at %+.2f px (%.1f standard errors over %d pairs)", mirror.msd[0], mirror.msd[1],
+             est.offset_px, mirror.t, mirror.n_pairs)
+    return poses, float(est.offset_px), ((float(est.offset_px), mirror) if mirror.second_better else None)
+
+
 def _roi(p, geom, vol_geom, poses, timings):
     """A region-of-interest scan: the data with the outside's average subtracted, and its nominal reconstruction."""
     from ._truncation import outside_pattern
@@ -1335,7 +1385,7 @@ def _same_volume(made_by: Stage, stage: Stage) -> bool:
 
 
 def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra,
-            p_out=None):
+            p_out=None, mirror_start=None):
     """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment.
 
     ``p_out``: the data the output volumes are reconstructed from (with the rows' edges carried outward) when the
@@ -1371,23 +1421,15 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         # held-out 180-degree scan: a 0.034 px geometry rejected for its 0.272 px nominal). Judge both
         # again against the volume the stages correlated with, on the same data, and keep that verdict
         snr_before, snr_after = _recheck(scaled, poses, last, snr_before, snr_after)
-    rejected = None
+    rejected, why = None, ""
     if p_out is not None and d0.chi <= ROI_NOMINAL_CHI:
         # a region-of-interest scan whose nominal fit is already at the noise once the outside's average is
         # subtracted: what the calibration moves is not seen above the noise (docs/method.md §5.17)
-        rejected = calibrated
-        message = (f"{Status.UNDETERMINED.message} (region-of-interest scan: chi {d0.chi:.3f} at the nominal geometry, "
-                   f"{d1.chi:.3f} calibrated; the run itself ended with: {message})")
-        log.warning(message)
-        status = Status.UNDETERMINED
+        rejected, status = calibrated, Status.UNDETERMINED
+        why = f"region-of-interest scan: chi {d0.chi:.3f} at the nominal geometry, {d1.chi:.3f} calibrated"
     elif np.mean(snr_after) < np.mean(snr_before):
-        rejected = calibrated
-        message = (
-            f"{Status.WORSE_THAN_NOMINAL.message} (mean SNR {np.mean(snr_before):.2f} dB nominal, "
-            f"{np.mean(snr_after):.2f} dB calibrated; the run itself ended with: {message})"
-        )
-        log.warning(message)
-        status = Status.WORSE_THAN_NOMINAL
+        rejected, status = calibrated, Status.WORSE_THAN_NOMINAL
+        why = f"mean SNR {np.mean(snr_before):.2f} dB nominal, {np.mean(snr_after):.2f} dB calibrated"
     elif p_out is not None:
         # a region-of-interest scan: what the model leaves out can make a wrong geometry fit better (rods
         # wider than the field: SNR up, the truth farther); judge both by how well the views they were not
@@ -1396,21 +1438,48 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         log.info("roi: cross-validated residual (half the views reconstructed, the other half predicted): nominal "
                  "%.6g, calibrated %.6g", cv_nominal, cv_calibrated)
         if cv_calibrated > cv_nominal:
-            rejected = calibrated
-            message = (f"{Status.WORSE_THAN_NOMINAL.message} (region-of-interest scan: reconstructed from half the views, "
-                       f"the calibrated geometry predicts the other half worse than the nominal one, residual "
-                       f"x{cv_calibrated / cv_nominal:.4f}; the run itself ended with: {message})")
-            log.warning(message)
-            status = Status.WORSE_THAN_NOMINAL
-    if rejected is not None:
+            rejected, status = calibrated, Status.WORSE_THAN_NOMINAL
+            why = (f"region-of-interest scan: reconstructed from half the views, the calibrated geometry predicts the "
+                   f"other half worse than the nominal one, residual x{cv_calibrated / cv_nominal:.4f}")
+    fallback = None
+    if rejected is not None and mirror_start is not None:
+        # a region-of-interest scan whose stages' geometry its reconstructions cannot confirm: the axis offset that
+        # its opposite views confirm against the nominal axis, without a reconstruction, where its mean SNR is not
+        # below the nominal one's either (docs/method.md §5.42)
+        from ._init import offset_poses
+
+        offset, mirror = mirror_start
+        off_poses = offset_poses(geom, offset)
+        off_vol = reconstruct(p, vol_geom, geom.apply(off_poses))
+        off_snr, off_d = _fit(scaled, off_poses, stages[-1], off_vol)
+        mirror_text = (f"axis offset {offset:+.2f} px: each view against its mirrored opposite, mean squared difference "
+                       f"{mirror.msd[0]:.4g} with the nominal axis, {mirror.msd[1]:.4g} with this one, {mirror.t:.1f} "
+                       f"standard errors over {mirror.n_pairs} pairs; mean SNR {np.mean(snr_before):.2f} dB nominal, "
+                       f"{np.mean(off_snr):.2f} dB with this offset")
+        if np.mean(off_snr) >= np.mean(snr_before):
+            fallback = (off_poses, off_vol, off_snr, off_d)
+        else:
+            why = f"{why}; the opposite views' {mirror_text}: not kept either"
+    nominal_returned = rejected is not None and fallback is None
+    if nominal_returned:
+        message = f"{status.message} ({why}; the run itself ended with: {message})"
+        log.warning(message)
         poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
         diagnoses = (diagnoses[0], diagnoses[0])
         other = ""  # the nominal geometry returned: its diagnosis is the nominal one
+    elif rejected is not None:
+        message = (f"{Status.AXIS_OFFSET.message} ({mirror_text}; the stages' geometry not kept, "
+                   f"{status.name.lower()}: {why}; the run itself ended with: {message})")
+        log.warning(message)
+        status = Status.AXIS_OFFSET
+        poses, vol, snr_after, d1 = fallback
+        calibrated = geom.apply(poses)
+        diagnoses, other = (diagnoses[0], d1), ""
     vol_fit = vol
     if p_out is not None:  # the user's volumes hold the whole field of view, the outside's average included
         emit(dict(event="reconstruct", what="output volumes"))
         vol_initial = reconstruct(p_out, vol_geom, geom, padding="edge")
-        vol = vol_initial if rejected is not None else reconstruct(p_out, vol_geom, calibrated, padding="edge")
+        vol = vol_initial if nominal_returned else reconstruct(p_out, vol_geom, calibrated, padding="edge")
     lo, hi = np.percentile(vol, [0.1, 99.9])
     e_before = shannon_entropy(vol_initial, value_range=(float(lo), float(hi)))
     e_after = shannon_entropy(vol, value_range=(float(lo), float(hi)))
