@@ -377,9 +377,12 @@ def baseline_poses(p, geom, angles):
     top, bot = np.arange(0, half), np.arange(nr - half, nr)
     pu = float(np.mean(np.linalg.norm(geom.u, axis=1)))
     pv = float(np.mean(np.linalg.norm(geom.v, axis=1)))
+    # a sample wider than the field (--roi above 0.7 n): the opposite views compared over the columns both hold, as
+    # pdvc does on such a scan (the correlation of whole rows is pulled toward the detector's centre there)
+    kw = dict(overlap=ROI["radius"] > 0.7)
     try:
-        e_top = estimate_axis_offset(p, geom, rows=top)
-        e_bot = estimate_axis_offset(p, geom, rows=bot)
+        e_top = estimate_axis_offset(p, geom, rows=top, **kw)
+        e_bot = estimate_axis_offset(p, geom, rows=bot, **kw)
         slope = (e_bot.offset_px - e_top.offset_px) / (bot.mean() - top.mean())  # columns per row
         off_c = e_top.offset_px + slope * ((nr - 1) / 2 - top.mean())  # at the centre row (the z = 0 plane)
         tilt = float(np.arctan(slope * pu / pv))  # rows go up z, columns along +x: leans toward +x
@@ -387,7 +390,7 @@ def baseline_poses(p, geom, angles):
         note = f"offset {off_c:+.2f}px tilt {np.degrees(tilt):+.3f}deg"
     except InitError as exc:
         try:
-            e = estimate_axis_offset(p, geom)
+            e = estimate_axis_offset(p, geom, **kw)
             tilt, ox, note = 0.0, e.translation, f"halves refused ({exc}); offset only"
         except InitError as exc2:
             return np.zeros((geom.n_views, 3)), np.zeros((geom.n_views, 3)), f"refused ({exc2}); nominal", (0.0, 0.0)
@@ -571,7 +574,7 @@ def header(args) -> list:
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
            f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else "")
         + (f"; samples of radius {ROI['radius']:g} n, wider than the field of view of 0.7 n, on a volume 1.4 n wide "
-           "(--roi)" if ROI["radius"] > 0.7 else
+           "(--roi; the baseline compares opposite views over the columns both hold)" if ROI["radius"] > 0.7 else
            f"; samples of radius {ROI['radius']:g} n on a volume 1.4 n wide (--roi)" if ROI["radius"] else ""),
     ]
 
