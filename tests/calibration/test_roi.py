@@ -210,3 +210,29 @@ def test_cross_validation_prefers_the_true_geometry_of_a_region_of_interest_scan
     assert cross_validated_rss(p, vg, truth) > 2 * true
     w = np.ones(p.shape[1:], np.float32)
     assert roi_cross_validated_rss(p, vg, truth, w) == pytest.approx(true, rel=1e-5)
+
+
+def test_a_half_turns_offset_within_its_extrapolation_is_no_fallback(monkeypatch, caplog):
+    import dataclasses
+
+    from pdvc.calibration import _init
+    from pdvc.calibration._pipeline import MIRROR_MIN_EXTRAPOLATIONS, _roi_start
+
+    angles = np.linspace(0, np.pi, 90, endpoint=False)
+    geom = pdvc.parallel(angles, det_shape=(32, 46), pixel=1.0)
+    rv, t = tilted_axis_poses(angles, tilt=0.0, offset=(1.0, 0, 0))
+    foam = foam_phantom(32.0, 25.6, cell_size=(0.08 * 0.36, 0.18 * 0.36), seed=3)
+    p = simulate_scan(foam, geom, rotvecs=rv, translations=t, i0=2e4, seed=1, supersampling=2).projections
+    _, off, kept = _roi_start(p, geom, None, 0.0, {})
+    assert kept is not None and kept[0] == off and abs(off - 1.0) < 0.3  # no opposite view: near-opposite pairs
+    real = _init.estimate_axis_offset
+    step = np.pi / 90
+    steep = abs(off) / (0.9 * MIRROR_MIN_EXTRAPOLATIONS * step)  # the offset just within twice a step's change
+
+    def estimate(*args, **kwargs):
+        return dataclasses.replace(real(*args, **kwargs), mismatch_slope=steep)
+
+    monkeypatch.setattr(_init, "estimate_axis_offset", estimate)
+    with caplog.at_level("INFO", logger="pdvc.calibration"):
+        _, off2, kept = _roi_start(p, geom, None, 0.0, {})
+    assert kept is None and off2 == off and "is not kept as a fallback" in caplog.text

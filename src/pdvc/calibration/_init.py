@@ -251,12 +251,13 @@ def _bands(x: np.ndarray) -> np.ndarray:
     return np.add.reduceat(x, edges[:-1], axis=0) / np.diff(edges)[:, None]
 
 
-def _msd(a: np.ndarray, b: np.ndarray, shifts, lo: int, hi: int) -> np.ndarray:
-    """Mean squared difference of ``b(j)`` and ``a(j + s)`` (a cubic spline) over the columns ``lo:hi``, per shift."""
+def _msd(a: np.ndarray, b: np.ndarray, shifts, lo: int, hi: int, per_row: bool = False) -> np.ndarray:
+    """Mean squared difference of ``b(j)`` and ``a(j + s)`` (a cubic spline) over the columns ``lo:hi``, per shift
+    (and per row: ``(n_shifts, n_rows)``)."""
     from scipy import ndimage
 
-    return np.array([np.mean((b[:, lo:hi] - ndimage.shift(a, (0.0, -s), order=3, mode="nearest")[:, lo:hi]) ** 2)
-                     for s in shifts])
+    return np.array([np.mean((b[:, lo:hi] - ndimage.shift(a, (0.0, -s), order=3, mode="nearest")[:, lo:hi]) ** 2,
+                             axis=1 if per_row else None) for s in shifts])
 
 
 def _shift_over_overlap(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shift: float) -> tuple[float, float]:
@@ -533,7 +534,7 @@ class MirrorComparison:
 
     offsets_px: tuple
     msd: tuple  # mean over the pairs of each offset's mean squared difference
-    t: float  # the paired difference (first minus second) over its standard error
+    t: float  # the paired difference (first minus second) over its standard error, over the pairs' bands of rows
     n_pairs: int
 
     @property
@@ -552,7 +553,8 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
     """Two axis offsets (pixels, as :func:`estimate_axis_offset`'s) compared without a reconstruction: each view and
     its mirrored opposite (the pairs within half an angular step of 180°) over the columns both hold, on one window of
     columns for both offsets, their mean squared difference with the axis at each; the paired difference over the
-    pairs and its standard error.
+    pairs and bands of rows (:func:`estimate_axis_offset`'s, at most ``OVERLAP_BANDS`` per pair, each band of each
+    pair one sample: a 180° scan has only 2 or 3 pairs) and its standard error.
 
     A 180° scan without its end point has no opposite view within half a step: there the views up to 2.5 steps from
     opposite are paired, as :func:`estimate_axis_offset` pairs them, each pair's mirror shifted by what the sample
@@ -582,10 +584,12 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
     if hi - lo < n // 2:
         raise InitError(f"compare_offsets: offsets {first:+.3g} and {second:+.3g} px leave less than half the "
                         f"{n} columns to compare")
+    # (pair, shift, band of rows): each band of each pair a sample of the paired difference
     msd = np.array([_msd(_bands(np.asarray(projections[i], np.float64)[row_idx]),
-                         _bands(np.asarray(projections[j], np.float64)[row_idx][:, ::-1]), sh, lo, hi)
+                         _bands(np.asarray(projections[j], np.float64)[row_idx][:, ::-1]), sh, lo, hi, per_row=True)
                     for (i, j), sh in zip(pairs, shifts)])
-    d = msd[:, 0] - msd[:, 1]
+    d = (msd[:, 0] - msd[:, 1]).ravel()
+    msd = msd.mean(axis=2)
     se = float(np.std(d, ddof=1) / np.sqrt(d.size))
     t = float(np.mean(d) / se) if se > 0 else (np.inf if np.mean(d) > 0 else 0.0)
     return MirrorComparison(offsets_px=(float(first), float(second)), msd=tuple(float(m) for m in msd.mean(axis=0)),

@@ -1198,6 +1198,13 @@ def _covers_field(geom, vol_geom) -> bool:
     return False
 
 
+#: a region-of-interest half turn without opposite views: its opposite views' offset is a fallback only when at least
+#: this many times the change of the pairs' line over the step it is extrapolated (a held-out foam, 0.068 px nominal:
+#: offset 0.38 px, 1.3 times the 0.29 px change, returned at 0.139 px; the tuning half turns 3.6 times or more;
+#: docs/method.md §5.42)
+MIRROR_MIN_EXTRAPOLATIONS = 2.0
+
+
 def _roi_start(p, geom, poses, offset_px: float, timings):
     """A region-of-interest scan (material at the rows' ends): the coarse axis offset measured again with the opposite
     views compared over the columns both hold (:func:`estimate_axis_offset` with ``overlap=True``), and whether their
@@ -1208,7 +1215,7 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
     rows takes out a straight line through each row's ends, which on such a scan pulls the offset toward the
     detector's centre (rods of ``bench_accuracy.py --quick --roi 1.0``: -0.20 px found for +1.28 px).
     """
-    from ._init import compare_offsets, estimate_axis_offset, offset_poses
+    from ._init import _opposite_pairs, _scan_angles, compare_offsets, estimate_axis_offset, offset_poses
 
     t0 = time.perf_counter()
     try:
@@ -1232,6 +1239,16 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
     log.info("roi: each view against its mirrored opposite, mean squared difference %.4g with the nominal axis, %.4g "
              "with the axis at %+.2f px (%.1f standard errors over %d pairs)", mirror.msd[0], mirror.msd[1],
              est.offset_px, mirror.t, mirror.n_pairs)
+    if est.mismatch_slope:
+        # a 180-degree scan without its end point: the offset is the line through pairs 1-2 steps from opposite,
+        # extrapolated by a step; one within MIRROR_MIN_EXTRAPOLATIONS of that step's change is not told from it
+        step = _opposite_pairs(_scan_angles(geom), None)[1]
+        change = abs(est.mismatch_slope) * step
+        if abs(est.offset_px) < MIRROR_MIN_EXTRAPOLATIONS * change:
+            log.info("roi: the offset is not kept as a fallback: %.2f px is less than %g times the %.2f px by which the "
+                     "pairs' line changes over the step it is extrapolated (no opposite view within half a step)",
+                     abs(est.offset_px), MIRROR_MIN_EXTRAPOLATIONS, change)
+            return poses, float(est.offset_px), None
     return poses, float(est.offset_px), ((float(est.offset_px), mirror) if mirror.second_better else None)
 
 
