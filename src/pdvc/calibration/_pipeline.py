@@ -90,7 +90,9 @@ class CalibrationResult(PosesResult):
     timings : dict
         Seconds per step (``init``, ``stages``, each stage, ``final``).
     rejected_geometry : VectorGeometry or None
-        The calibrated geometry that was rejected for fitting worse than nominal.
+        The calibrated geometry that the final check rejected (the nominal
+        geometry returned, or with ``Status.AXIS_OFFSET`` the axis offset
+        that the opposite views confirm).
     truncation : Truncation or None
         Whether the sample reaches past the volume box (read off the
         nominal reconstruction); when it crosses the top or bottom face the
@@ -1226,6 +1228,7 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
         return poses, offset_px, None
     finally:
         timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
+    t0 = time.perf_counter()
     log.info("roi: the rows' ends hold material: axis offset %+.2f px from the opposite views compared over the columns "
              "both hold (the correlation of whole rows said %+.2f px); the stages start there", est.offset_px, offset_px)
     poses = offset_poses(geom, float(est.offset_px))
