@@ -195,10 +195,36 @@ def _near_opposite_pairs(theta: np.ndarray, step: float, reach: float = 2.5) -> 
     return np.array(pairs, dtype=np.int64).reshape(-1, 2), np.array(delta, dtype=np.float64)
 
 
+def _pairs(theta: np.ndarray, max_mismatch: float | None = None) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """The pairs :func:`estimate_axis_offset` correlates, their mismatches (None where they are opposite) and the
+    angular step: opposite views, else (``max_mismatch`` unset) the views up to 2.5 steps from opposite where they
+    hold two different mismatches to extrapolate from."""
+    pairs, step = _opposite_pairs(theta, max_mismatch)
+    if pairs.shape[0] == 0 and max_mismatch is None and step > 0:
+        near, delta = _near_opposite_pairs(theta, step)
+        if np.unique(np.round(delta / step)).size >= 2:
+            return near, delta, step
+    return pairs, None, step
+
+
+def _mirrored(projections, i: int, j: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """View ``i``'s rows and view ``j``'s mirrored (float64)."""
+    return (np.asarray(projections[i], np.float64)[rows], np.asarray(projections[j], np.float64)[rows][:, ::-1])
+
+
 def _prepare(img: np.ndarray) -> np.ndarray:
     """Rows minus the straight line through their end values: zero at both ends, so zero padding adds no step."""
     x = np.linspace(0.0, 1.0, img.shape[1])
     return img - (img[:, :1] * (1.0 - x) + img[:, -1:] * x)
+
+
+def _vertex(y: np.ndarray, j: int) -> float:
+    """Where the parabola through ``y[j - 1 : j + 2]`` peaks, relative to ``j`` (0 at an end or without a peak)."""
+    if not 0 < j < y.size - 1:
+        return 0.0
+    y0, y1, y2 = y[j - 1], y[j], y[j + 1]
+    den = y0 - 2 * y1 + y2
+    return float(0.5 * (y0 - y2) / den) if den < 0 else 0.0
 
 
 def _shift_by_correlation(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shift: float) -> tuple[float, float]:
@@ -224,13 +250,7 @@ def _shift_by_correlation(a: np.ndarray, b: np.ndarray, *, upsample: int, max_sh
     grid = s0 + np.arange(-upsample, upsample + 1) / upsample
     fine = (np.exp(2j * np.pi * np.outer(grid, k) / size) @ (weight * X)).real / size
     j = int(np.argmax(fine))
-    frac = 0.0
-    if 0 < j < grid.size - 1:
-        y0, y1, y2 = fine[j - 1], fine[j], fine[j + 1]
-        den = y0 - 2 * y1 + y2
-        if den < 0:
-            frac = 0.5 * (y0 - y2) / den
-    shift = float(grid[j] + frac / upsample)
+    shift = float(grid[j] + _vertex(fine, j) / upsample)
     norm = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
     ncc = float(fine[j] / norm) if norm > 0 else 0.0
     if abs(shift) >= max_shift - 1.0:
@@ -294,13 +314,7 @@ def _shift_over_overlap(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shif
 
     msd = _msd(a, b, grid, lo, hi)
     j = int(np.argmin(msd))
-    frac = 0.0
-    if 0 < j < grid.size - 1:
-        y0, y1, y2 = msd[j - 1], msd[j], msd[j + 1]
-        den = y0 - 2 * y1 + y2
-        if den > 0:
-            frac = 0.5 * (y0 - y2) / den
-    shift = float(grid[j] + frac / upsample)
+    shift = float(grid[j] + _vertex(-msd, j) / upsample)
     x = ndimage.shift(a, (0.0, -shift), order=3, mode="nearest")[:, lo:hi].ravel()
     y = b[:, lo:hi].ravel()
     x, y = x - x.mean(), y - y.mean()
@@ -441,12 +455,7 @@ def estimate_axis_offset(
     row_idx = _rows(rows, geom)
 
     theta = _scan_angles(geom)
-    pairs, step = _opposite_pairs(theta, max_mismatch)
-    mismatch = None  # extrapolated to 0 when the pairs are not opposite
-    if pairs.shape[0] == 0 and max_mismatch is None and step > 0:
-        near, delta = _near_opposite_pairs(theta, step)
-        if np.unique(np.round(delta / step)).size >= 2:
-            pairs, mismatch = near, delta
+    pairs, mismatch, step = _pairs(theta, max_mismatch)  # mismatch: extrapolated to 0 when the pairs are not opposite
     if pairs.shape[0] == 0:
         span = np.degrees(np.ptp(np.unwrap(np.sort(theta))))
         tol = np.degrees(0.5 * step if max_mismatch is None else max_mismatch)
@@ -459,8 +468,7 @@ def estimate_axis_offset(
     offsets, nccs = [], []
     prepare, shift_of = ((lambda x: x), _shift_over_overlap) if overlap else (_prepare, _shift_by_correlation)
     for i, j in pairs:
-        a = prepare(np.asarray(projections[i], np.float64)[row_idx])
-        b = prepare(np.asarray(projections[j], np.float64)[row_idx][:, ::-1])
+        a, b = (prepare(x) for x in _mirrored(projections, i, j, row_idx))
         s, ncc = shift_of(a, b, upsample=int(upsample), max_shift=2 * lim + 1)
         offsets.append(0.5 * s)
         nccs.append(ncc)
@@ -570,11 +578,8 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
         No pair of opposite views within half a step, or offsets too far apart for a shared window.
     """
     row_idx = _rows(rows, geom)
-    theta = _scan_angles(geom)
-    pairs, step = _opposite_pairs(theta, None)
-    delta = np.zeros(pairs.shape[0])
-    if pairs.shape[0] == 0 and step > 0:
-        pairs, delta = _near_opposite_pairs(theta, step)
+    pairs, delta, _ = _pairs(_scan_angles(geom))
+    delta = np.zeros(pairs.shape[0]) if delta is None else delta
     if pairs.shape[0] < 2:
         raise InitError("compare_offsets needs two pairs of opposite views or more (each view with one within half "
                         f"an angular step of 180 degrees, or 2.5 steps without one), got {pairs.shape[0]}")
@@ -585,8 +590,7 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
         raise InitError(f"compare_offsets: offsets {first:+.3g} and {second:+.3g} px leave less than half the "
                         f"{n} columns to compare")
     # (pair, shift, band of rows): each band of each pair a sample of the paired difference
-    msd = np.array([_msd(_bands(np.asarray(projections[i], np.float64)[row_idx]),
-                         _bands(np.asarray(projections[j], np.float64)[row_idx][:, ::-1]), sh, lo, hi, per_row=True)
+    msd = np.array([_msd(*(_bands(x) for x in _mirrored(projections, i, j, row_idx)), sh, lo, hi, per_row=True)
                     for (i, j), sh in zip(pairs, shifts)])
     d = (msd[:, 0] - msd[:, 1]).ravel()
     msd = msd.mean(axis=2)

@@ -1217,7 +1217,7 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
     rows takes out a straight line through each row's ends, which on such a scan pulls the offset toward the
     detector's centre (rods of ``bench_accuracy.py --quick --roi 1.0``: -0.20 px found for +1.28 px).
     """
-    from ._init import _opposite_pairs, _scan_angles, compare_offsets, estimate_axis_offset, offset_poses
+    from ._init import _pairs, _scan_angles, compare_offsets, estimate_axis_offset, offset_poses
 
     t0 = time.perf_counter()
     try:
@@ -1245,7 +1245,7 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
     if est.mismatch_slope:
         # a 180-degree scan without its end point: the offset is the line through pairs 1-2 steps from opposite,
         # extrapolated by a step; one within MIRROR_MIN_EXTRAPOLATIONS of that step's change is not told from it
-        step = _opposite_pairs(_scan_angles(geom), None)[1]
+        step = _pairs(_scan_angles(geom))[2]
         change = abs(est.mismatch_slope) * step
         if abs(est.offset_px) < MIRROR_MIN_EXTRAPOLATIONS * change:
             log.info("roi: the offset is not kept as a fallback: %.2f px is less than %g times the %.2f px by which the "
