@@ -380,3 +380,68 @@ def test_compare_offsets_on_a_half_turn_without_its_end_point():
     assert not compare_offsets(p, geom, est.offset_px, 0.0, mismatch_slope=est.mismatch_slope).second_better
     # full turns: opposite pairs, no slope
     assert estimate_axis_offset(_scan(_roi(FULL), 1.3), _roi(FULL), overlap=True).mismatch_slope == 0.0
+
+
+# -- the axis as a leaning line (estimate_axis_roll, compare_axes) --------------
+def _leaning(angles, roll_deg, offset, cols=80, **noise):
+    """A parallel scan of the head about an axis leaning by ``roll_deg`` in the detector plane (exact poses of
+    :func:`pdvc.simulate.tilted_axis_poses`), 32 rows; 80 columns: a sample wider than the field."""
+    from pdvc.simulate import tilted_axis_poses
+
+    geom = parallel(angles, det_shape=(32, cols), pixel=PIXEL)
+    rv, t = tilted_axis_poses(angles, tilt=np.radians(roll_deg), tilt_azimuth=0.0, offset=(offset * PIXEL, 0.0, 0.0))
+    if noise:
+        return geom, simulate_scan(PHANTOM, geom, rotvecs=rv, translations=t, **noise).projections
+    return geom, project_analytic(PHANTOM, geom.apply_poses(rv, t), supersampling=2)
+
+
+@pytest.mark.parametrize("roll_deg, offset", [(0.8, 1.3), (-0.4, 0.5), (0.0, -1.1)])
+def test_roll_of_a_sample_wider_than_the_field(roll_deg, offset):
+    from pdvc.calibration import estimate_axis_roll
+
+    for noise in ({}, dict(i0=2e4, seed=3)):
+        geom, p = _leaning(FULL, roll_deg, offset, **noise)
+        before = p.copy()
+        line = estimate_axis_roll(p, geom, estimate_axis_offset(p, geom, overlap=True))
+        assert np.array_equal(p, before)
+        # measured: exact line integrals within 0.005 deg and 0.001 px, at i0 = 2e4 within 0.019 deg and 0.006 px
+        assert line.roll_deg == pytest.approx(roll_deg, abs=0.05)
+        assert line.offset_px == pytest.approx(offset, abs=0.03)
+        assert line.slope == pytest.approx(np.tan(np.radians(roll_deg)), abs=1e-3)  # square pixels
+        # the best upright axis is worse by 7-17 standard errors where the axis leans, by 0.1-1.1 where it does not
+        assert line.comparison.second_better == bool(roll_deg)
+        assert (line.comparison.t > 5) if roll_deg else (abs(line.comparison.t) < 3)
+        assert line.n_pairs == 32  # the 60 pairs thinned to ROLL_MAX_PAIRS
+
+
+def test_compare_axes_ranks_lines_both_ways():
+    from pdvc.calibration import compare_axes
+
+    geom, p = _leaning(FULL, 0.8, 1.3, i0=2e4, seed=3)
+    slope = np.tan(np.radians(0.8))
+    m = compare_axes(p, geom, (1.3, 0.0), (1.3, slope))
+    assert m.second_better and m.msd[1] < m.msd[0] and m.offsets_px == ((1.3, 0.0), (1.3, slope))
+    back = compare_axes(p, geom, (1.3, slope), (1.3, 0.0))
+    assert back.t == pytest.approx(-m.t) and not back.second_better
+    # the lean of the wrong sign is worse than none
+    assert compare_axes(p, geom, (1.3, -slope), (1.3, 0.0)).second_better
+
+
+def test_roll_refused_where_no_view_is_another_s_reflection():
+    from pdvc.calibration import estimate_axis_roll
+
+    geom = _cone(FULL)
+    p = _scan(geom, 1.3)
+    with pytest.raises(InitError, match="parallel beam only"):
+        estimate_axis_roll(p, geom, estimate_axis_offset(p, geom, overlap=True))
+    geom, p = _leaning(FULL[:1], 0.0, 0.0)
+    est = AxisOffsetEstimate(0.0, 0.0, 0.0, 1, np.zeros((1, 2), np.int64), np.zeros(1), np.ones(1), 1.0, PIXEL,
+                             np.arange(32))
+    with pytest.raises(InitError, match="two pairs"):
+        estimate_axis_roll(p, geom, est)
+    # a half turn without its end point: no view has an opposite
+    geom, p = _leaning(np.linspace(0, np.pi, 90, endpoint=False), 0.0, 1.3)
+    with pytest.raises(InitError, match="two pairs of opposite views or more .*, got 0"):
+        estimate_axis_roll(p, geom, estimate_axis_offset(p, geom, overlap=True))
+    with pytest.raises(InputTypeError, match="AxisOffsetEstimate"):
+        estimate_axis_roll(p, geom, 0.0)

@@ -10,7 +10,11 @@
   precession, the drift and jolts of the set-up off the per-view poses;
 * :func:`estimate_axis_offset` finds a large centre-of-rotation offset by
   cross-correlating opposite views, and :func:`offset_poses` turns it into
-  per-view poses; in parallel beam :func:`estimate_axis_tilt` measures the
+  per-view poses; :func:`compare_offsets` ranks two offsets by how well
+  each view matches its mirrored opposite; in parallel beam
+  :func:`estimate_axis_roll` finds the projected axis as a leaning line by
+  reflecting each view about it (:func:`compare_axes` ranks two such
+  lines), and :func:`estimate_axis_tilt` measures the
   axis's tilt, along the beam too, from the row sums of the views (no
   reconstruction), and :func:`tilt_poses` turns it into poses;
   :class:`RowSumConsistency` scores any per-view poses against those row
@@ -33,7 +37,8 @@ from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
 from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps, jolt_views, reconstruct, refined_grid,
                       run_stages)
-from ._init import AxisOffsetEstimate, InitError, MirrorComparison, compare_offsets, estimate_axis_offset, offset_poses
+from ._init import (AxisOffsetEstimate, AxisRollEstimate, InitError, MirrorComparison, compare_axes, compare_offsets,
+                    estimate_axis_offset, estimate_axis_roll, offset_poses)
 from ._rowsums import AxisTiltEstimate, RowSumConsistency, VerticalMotion, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual, sample_outline
@@ -110,6 +115,9 @@ __all__ = [
     "estimate_axis_offset",
     "compare_offsets",
     "MirrorComparison",
+    "estimate_axis_roll",
+    "AxisRollEstimate",
+    "compare_axes",
     "offset_poses",
     "AxisTiltEstimate",
     "RowSumConsistency",

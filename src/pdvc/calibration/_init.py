@@ -32,7 +32,10 @@ from ..correlation import lab_frames
 from ..errors import InputTypeError, PdvcError, ShapeError
 from ..geometry import Poses, VectorGeometry
 
-__all__ = ["InitError", "AxisOffsetEstimate", "MirrorComparison", "compare_offsets", "estimate_axis_offset", "offset_poses"]
+__all__ = [
+    "InitError", "AxisOffsetEstimate", "AxisRollEstimate", "MirrorComparison", "compare_axes", "compare_offsets",
+    "estimate_axis_offset", "estimate_axis_roll", "offset_poses",
+]
 
 log = logging.getLogger(__name__)
 
@@ -271,6 +274,26 @@ def _bands(x: np.ndarray) -> np.ndarray:
     return np.add.reduceat(x, edges[:-1], axis=0) / np.diff(edges)[:, None]
 
 
+#: the rows compared over their overlap are smoothed along the columns by a Gaussian of this standard deviation, pixels,
+#: before any shift: a cubic spline at a fraction of a pixel averages the noise it interpolates (its variance 0.5-0.6
+#: of the noise's at half a pixel, 1 at a whole one), which pulls the mean squared difference toward fractional
+#: shifts wherever the noise dominates it: a cylinder wider than the field at i0 = 2e3 (its views smooth domes) came
+#: out 0.21-0.23 px off an axis at 0 or 0.5 px, and the comparison preferred 0.25 px to the true 0 by 18-20 standard
+#: errors. Smoothed, both agree within 0.02 px and the comparison prefers the truth (docs/method.md §5.43)
+OVERLAP_SMOOTH_PX = 1.0
+#: columns at each end of a smoothed row that the smoothing took past the row's end, left out of every comparison
+OVERLAP_EDGE = 3
+
+
+def _smoothed(x: np.ndarray, axes=(1,)) -> np.ndarray:
+    """Rows smoothed by ``OVERLAP_SMOOTH_PX`` along ``axes`` (the columns; rows too with ``(0, 1)``)."""
+    from scipy import ndimage
+
+    for ax in axes:
+        x = ndimage.gaussian_filter1d(x, OVERLAP_SMOOTH_PX, axis=ax, mode="nearest")
+    return x
+
+
 def _msd(a: np.ndarray, b: np.ndarray, shifts, lo: int, hi: int, per_row: bool = False) -> np.ndarray:
     """Mean squared difference of ``b(j)`` and ``a(j + s)`` (a cubic spline) over the columns ``lo:hi``, per shift
     (and per row: ``(n_shifts, n_rows)``)."""
@@ -289,11 +312,12 @@ def _shift_over_overlap(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shif
     sample), both of which pull the estimate toward the shift that lines up the detector's edges. Here nothing is
     padded or detrended: the mean squared difference over the overlap at every whole shift (FFT, each shift
     normalised by its own overlap, at least half the row), then on a fixed window of columns at ``1/upsample``
-    pixel around the best one (``a`` interpolated by a cubic spline), then a parabola.
+    pixel around the best one (``a`` interpolated by a cubic spline), then a parabola. Both rows are smoothed along
+    the columns first (:data:`OVERLAP_SMOOTH_PX`), the window kept :data:`OVERLAP_EDGE` columns from their ends.
     """
     from scipy import ndimage
 
-    a, b = _bands(a), _bands(b)
+    a, b = _smoothed(_bands(a)), _smoothed(_bands(b))
     nr, n = a.shape
     size = 1 << int(np.ceil(np.log2(2 * n)))
     ones = np.ones_like(a)
@@ -308,7 +332,8 @@ def _shift_over_overlap(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shif
     i = int(np.argmin(np.where(allowed, ssd / np.maximum(count, 1.0), np.inf)))
     s0 = float(lags[i])
     grid = s0 + np.arange(-upsample, upsample + 1) / upsample
-    lo, hi = max(0, int(np.ceil(-grid[0])) + 1), min(n, n - int(np.ceil(grid[-1])) - 1)
+    lo = max(0, int(np.ceil(-grid[0]))) + OVERLAP_EDGE
+    hi = min(n, n - int(np.ceil(grid[-1]))) - OVERLAP_EDGE
     if hi - lo < 2:
         return np.copysign(np.inf, s0), 0.0
 
@@ -414,7 +439,10 @@ def estimate_axis_offset(
         sample wider than the field of view), where that line differs
         between the two views and pulls the estimate toward the detector's
         centre (a rod of ``bench_accuracy.py --quick --roi 1.0``: -0.20 px
-        found for an axis at +1.28 px). Its correlation is the
+        found for an axis at +1.28 px). Both rows are smoothed along the
+        columns first (``OVERLAP_SMOOTH_PX``: a spline's fractional shifts
+        average the noise, which biased views at the noise toward them) and
+        their ``OVERLAP_EDGE`` end columns left out. Its correlation is the
         mean-removed one over the overlap.
 
     Returns
@@ -585,12 +613,13 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
                         f"an angular step of 180 degrees, or 2.5 steps without one), got {pairs.shape[0]}")
     n = geom.det_shape[1]
     shifts = 2.0 * (np.array([float(first), float(second)])[None, :] + float(mismatch_slope) * delta[:, None])
-    lo, hi = max(0, int(np.ceil(-shifts.min())) + 2), min(n, n - int(np.ceil(shifts.max())) - 2)
+    lo = max(0, int(np.ceil(-shifts.min()))) + OVERLAP_EDGE
+    hi = min(n, n - int(np.ceil(shifts.max()))) - OVERLAP_EDGE
     if hi - lo < n // 2:
         raise InitError(f"compare_offsets: offsets {first:+.3g} and {second:+.3g} px leave less than half the "
                         f"{n} columns to compare")
     # (pair, shift, band of rows): each band of each pair a sample of the paired difference
-    msd = np.array([_msd(*(_bands(x) for x in _mirrored(projections, i, j, row_idx)), sh, lo, hi, per_row=True)
+    msd = np.array([_msd(*(_smoothed(_bands(x)) for x in _mirrored(projections, i, j, row_idx)), sh, lo, hi, per_row=True)
                     for (i, j), sh in zip(pairs, shifts)])
     d = (msd[:, 0] - msd[:, 1]).ravel()
     msd = msd.mean(axis=2)
@@ -598,6 +627,228 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
     t = float(np.mean(d) / se) if se > 0 else (np.inf if np.mean(d) > 0 else 0.0)
     return MirrorComparison(offsets_px=(float(first), float(second)), msd=tuple(float(m) for m in msd.mean(axis=0)),
                             t=t, n_pairs=int(pairs.shape[0]))
+
+
+#: estimate_axis_roll: the projected axis searched within this angle of the detector's columns, degrees; at most this many
+#: pairs of opposite views (evenly chosen) and bands of rows take part
+ROLL_MAX_DEG = 1.5
+ROLL_MAX_PAIRS = 32
+ROLL_MAX_BANDS = 64
+
+
+@dataclass(frozen=True, eq=False)
+class AxisRollEstimate:
+    """The projected rotation axis as a line on the detector, from opposite views (:func:`estimate_axis_roll`).
+
+    Attributes
+    ----------
+    offset_px : float, pixels
+        Column of the line at the detector's centre row minus the centre column (as
+        :attr:`AxisOffsetEstimate.offset_px`).
+    slope : float
+        Columns per row along the line (positive: the axis leans toward larger columns at larger rows).
+    roll : float, radians
+        The axis's tilt about the beam, ``arctan(slope · |v| / |u|)``: the ``roll`` of
+        :func:`pdvc.calibration.tilt_poses` (and of :class:`AxisTiltEstimate`).
+    comparison : MirrorComparison
+        The line (second) against the best upright axis (first, its offset found the same way), each view against
+        its opposite reflected about either (as :func:`compare_axes`): whether the views ask for the lean.
+    n_pairs : int
+        Pairs of opposite views used.
+    upright_offset_px : float, pixels
+        The best upright axis's offset, found the same way (each view against its opposite reflected about it).
+    """
+
+    offset_px: float
+    slope: float
+    roll: float
+    comparison: MirrorComparison
+    n_pairs: int
+    upright_offset_px: float
+
+    @property
+    def roll_deg(self) -> float:
+        return float(np.rad2deg(self.roll))
+
+
+class _Reflection:
+    """Views and their mirrored opposites in bands of rows, and how well each view matches its opposite reflected about
+    a line ``c = c_centre + offset + slope · (r - r_centre)`` of the detector (parallel beam: exact).
+
+    A reflection about a line that leans by ``slope`` is a flip of the columns, a shift that changes along the rows
+    and a shift of the rows that changes along the columns (``2 slope Δ`` for a pixel ``Δ`` columns from the line):
+    the last is what a per-row shift leaves out (2.2 rows at 80 columns from the axis leaning 0.8°)."""
+
+    def __init__(self, projections, geom: VectorGeometry, max_slope: float, max_offset: float):
+        from scipy import ndimage
+
+        if geom.kind != "parallel":
+            raise InitError("the axis's lean from opposite views is measured in parallel beam only (in cone beam a view "
+                            "is its opposite's mirror image near the mid-plane only)")
+        nr, n = geom.det_shape
+        pairs, delta, _ = _pairs(_scan_angles(geom))
+        if delta is not None or pairs.shape[0] < 2:
+            # views 1-2 steps from opposite differ by what the sample turned between them, which no reflection holds
+            raise InitError("the axis's line needs two pairs of opposite views or more (each view with one within "
+                            f"half an angular step of 180 degrees), got {0 if delta is not None else pairs.shape[0]}")
+        keep = np.unique(np.linspace(0, pairs.shape[0] - 1, min(pairs.shape[0], ROLL_MAX_PAIRS)).round().astype(int))
+        pairs = pairs[keep]
+        rows = np.arange(nr)
+        nb = min(nr, ROLL_MAX_BANDS)
+        edges = np.linspace(0, nr, nb + 1).round().astype(int)
+
+        def bands(x):
+            return np.add.reduceat(x, edges[:-1], axis=0) / np.diff(edges)[:, None]
+
+        self.centre_rows = bands(rows[:, None].astype(np.float64))[:, 0]
+        self.height = float(nr) / nb
+        self.r_centre, self.c_centre = (nr - 1) / 2.0, (n - 1) / 2.0
+        self.coef, self.mirrored = [], []
+        for i, j in pairs:
+            # both smoothed alike along the rows too (OVERLAP_SMOOTH_PX: a lean found where there is none, 0.44° at
+            # i0 = 2e4 unsmoothed)
+            a, b = (_smoothed(bands(x), (0, 1)) for x in _mirrored(projections, int(i), int(j), rows))
+            self.coef.append(ndimage.spline_filter(a, order=3))
+            self.mirrored.append(b)
+        # one window for every line within reach: columns a shift of twice the largest offset leaves inside, bands the
+        # rows' shift leaves inside
+        reach = 2.0 * max_slope * (n / 2.0 + max_offset) / self.height
+        self.band_lo, self.band_hi = int(np.ceil(reach)) + OVERLAP_EDGE, nb - int(np.ceil(reach)) - OVERLAP_EDGE
+        self.n_pairs, self.n = int(pairs.shape[0]), n
+        if self.band_hi - self.band_lo < 2:
+            raise InitError(f"the axis's line needs more rows: {nr} rows leave no band to compare within "
+                            f"{np.degrees(np.arctan(max_slope)):.3g} degrees of lean")
+
+    def window(self, shifts: np.ndarray) -> tuple[int, int]:
+        lo = max(0, int(np.ceil(-shifts.min()))) + OVERLAP_EDGE
+        hi = min(self.n, self.n - int(np.ceil(shifts.max()))) - OVERLAP_EDGE
+        if hi - lo < self.n // 2:
+            raise InitError(f"offsets of {0.5 * shifts.min():+.3g} to {0.5 * shifts.max():+.3g} px leave less than half "
+                            f"the {self.n} columns to compare")
+        return lo, hi
+
+    def shifts(self, offset: float, slope: float) -> np.ndarray:
+        """(band,): the column shift of each band."""
+        return 2.0 * (offset + slope * (self.centre_rows - self.r_centre))
+
+    def msd(self, offset: float, slope: float, cols: tuple[int, int]) -> np.ndarray:
+        """(pair, band): the mean squared difference of each band of each view's mirrored opposite and the view
+        reflected about the line, over the window's columns ``cols`` and bands."""
+        from scipy import ndimage
+
+        lo, hi = cols
+        b0, b1 = self.band_lo, self.band_hi
+        c = np.arange(lo, hi, dtype=np.float64)[None, :]
+        k = np.arange(b0, b1, dtype=np.float64)[:, None]
+        rows = self.centre_rows[b0:b1, None]
+        dist = self.c_centre - c - offset - slope * (rows - self.r_centre)  # columns from the line, unflipped
+        out = np.empty((self.n_pairs, b1 - b0))
+        col = c + 2.0 * (offset + slope * (rows - self.r_centre))
+        row = np.broadcast_to(k + 2.0 * slope * dist / self.height, col.shape)
+        for q, (coef, b) in enumerate(zip(self.coef, self.mirrored)):
+            pred = ndimage.map_coordinates(coef, [row, col], order=3, prefilter=False, mode="nearest")
+            out[q] = np.mean((b[b0:b1, lo:hi] - pred) ** 2, axis=1)
+        return out
+
+
+def _paired(first: np.ndarray, second: np.ndarray, lines: tuple) -> MirrorComparison:
+    """The paired difference of two (pair, band) mean squared differences over its standard error, each pair one
+    sample (its bands share their smoothing along the rows: as samples they made a 0.026° lean of an upright foam
+    3.7 standard errors better than none)."""
+    d = (first - second).mean(axis=1)
+    se = float(np.std(d, ddof=1) / np.sqrt(d.size))
+    t = float(np.mean(d) / se) if se > 0 else (np.inf if np.mean(d) > 0 else 0.0)
+    return MirrorComparison(offsets_px=lines, msd=(float(first.mean()), float(second.mean())), t=t,
+                            n_pairs=int(first.shape[0]))
+
+
+def compare_axes(projections, geom: VectorGeometry, first: tuple, second: tuple) -> MirrorComparison:
+    """Two lines of the projected axis, ``(offset_px, slope)`` each (columns at the centre row, columns per row),
+    compared without a reconstruction: each view against its opposite reflected about either, on one window of
+    columns and bands of rows, the paired difference of their mean squared differences, each pair one sample, over
+    its standard error (``offsets_px`` holds both lines; :func:`compare_offsets` compares upright axes, on half turns
+    too).
+
+    Parallel beam, views with an opposite within half an angular step (a full turn): a view is its opposite's
+    reflection about the projected axis, whatever lies outside the field.
+
+    Raises
+    ------
+    InitError
+        A cone-beam geometry, fewer than two pairs of opposite views, too few rows or columns to compare.
+    """
+    first, second = (tuple(float(x) for x in line) for line in (first, second))
+    refl = _Reflection(projections, geom, max(abs(first[1]), abs(second[1])), max(abs(first[0]), abs(second[0])))
+    cols = refl.window(np.concatenate([refl.shifts(*first), refl.shifts(*second)]))
+    return _paired(refl.msd(*first, cols), refl.msd(*second, cols), (first, second))
+
+
+def _quadratic_minimum(cost, x0, steps, rounds: int = 4) -> np.ndarray:
+    """Where a smooth cost of two parameters is least: a quadratic fitted to a 3×3 stencil of ``steps`` about the
+    current point, its minimum (at most two steps away; the stencil's best point where the quadratic has none), the
+    steps halved, ``rounds`` times: 9 evaluations a round (a Nelder–Mead simplex took about 130 to the same 0.001)."""
+    x, h = np.asarray(x0, np.float64), np.asarray(steps, np.float64)
+    u = np.array([(i, j) for i in (-1.0, 0.0, 1.0) for j in (-1.0, 0.0, 1.0)])
+    design = np.column_stack([np.ones(9), u[:, 0], u[:, 1], u[:, 0] ** 2, u[:, 1] ** 2, u[:, 0] * u[:, 1]])
+    for _ in range(rounds):
+        vals = np.array([cost(x + h * d) for d in u])
+        c = np.linalg.lstsq(design, vals, rcond=None)[0]
+        hess = np.array([[2.0 * c[3], c[5]], [c[5], 2.0 * c[4]]])
+        if np.all(np.linalg.eigvalsh(hess) > 0):
+            step = np.clip(-np.linalg.solve(hess, c[1:3]), -2.0, 2.0)
+        else:
+            step = u[int(np.argmin(vals))]
+        x = x + h * step
+        h = 0.5 * h
+    return x
+
+
+def estimate_axis_roll(projections, geom: VectorGeometry, offset: AxisOffsetEstimate) -> AxisRollEstimate:
+    """The projected axis as a line on the detector: its offset and lean from opposite views, each view against its
+    opposite reflected about the line (:class:`_Reflection`), the mean squared difference over one window of
+    columns and bands of rows minimised from ``offset``'s upright axis (quadratic fits, within ``ROLL_MAX_DEG``).
+
+    Parallel beam only (in cone beam a view is its opposite's mirror image only near the mid-plane: a lean of 0.96°
+    found for 0.8° at a half-angle of 2.9°), with opposite views (a full turn; a 180° scan without its end point has
+    none). The estimate's ``comparison`` says whether the views prefer the line to the best upright axis.
+
+    Raises
+    ------
+    InitError
+        A cone-beam geometry, fewer than two pairs of opposite views, too few rows or columns to compare, or no
+        minimum within reach.
+    """
+    from scipy.optimize import minimize_scalar
+
+    if not isinstance(offset, AxisOffsetEstimate):
+        raise InputTypeError(f"offset must be a pdvc.calibration.AxisOffsetEstimate, got {type(offset).__name__}")
+    pu, pv = float(np.mean(np.linalg.norm(geom.u, axis=1))), float(np.mean(np.linalg.norm(geom.v, axis=1)))
+    max_slope = np.tan(np.radians(ROLL_MAX_DEG)) * pv / pu
+    refl = _Reflection(projections, geom, max_slope, abs(float(offset.offset_px)) + 1.0)
+    o0 = float(offset.offset_px)
+    cols = refl.window(np.concatenate([refl.shifts(o0 + d, s) for d in (-1.0, 1.0) for s in (-max_slope, max_slope)]))
+    scale = max_slope / 4.0  # the slope searched in units of a quarter of its reach
+
+    def cost(x):
+        return float(np.mean(refl.msd(o0 + x[0], x[1] * scale, cols)))
+
+    # the upright axis first (the best offset by the same measure), then the line from there: the comparison is then
+    # of the lean alone (against the upright axis at o0, a better offset alone made an upright cylinder lean 0.14°)
+    up = minimize_scalar(lambda d: cost((d, 0.0)), bounds=(-1.0, 1.0), method="bounded", options=dict(xatol=1e-3))
+    d_up = float(up.x)
+    x = _quadratic_minimum(cost, (d_up, 0.0), (0.25, 1.0))
+    d_off, slope = float(x[0]), float(x[1] * scale)
+    if abs(d_off) > 1.0 or abs(slope) > max_slope:
+        raise InitError(f"the axis's line left its reach: {d_off:+.2f} px from the upright axis's offset (at most 1), "
+                        f"a lean of {np.degrees(np.arctan(slope * pu / pv)):+.2f} degrees (at most {ROLL_MAX_DEG:g})")
+    upright, line = (o0 + d_up, 0.0), (o0 + d_off, slope)
+    comparison = _paired(refl.msd(*upright, cols), refl.msd(*line, cols), (upright, line))
+    roll = float(np.arctan(slope * pu / pv))
+    log.info("axis line from %d pairs of opposite views: offset %+.3f px at the centre row, lean %+.3f deg (%.1f standard "
+             "errors better than the upright axis at %+.3f px)", refl.n_pairs, line[0], np.degrees(roll), comparison.t,
+             upright[0])
+    return AxisRollEstimate(offset_px=line[0], slope=slope, roll=roll, comparison=comparison, n_pairs=refl.n_pairs,
+                            upright_offset_px=upright[0])
 
 
 def offset_poses(geom: VectorGeometry, offset_px: float) -> Poses:
