@@ -68,8 +68,9 @@ _MESSAGES = {
     Status.ROW_SUMS_GUARD: "stopped: the rounds moved the axis's tilt away from what the row sums of the views say (the "
     "loop walked along the pitch); the poses the row sums agree with best are kept",
     Status.AXIS_OFFSET: "axis offset only: the calibrated geometry could not be confirmed on this region-of-interest "
-    "scan; the axis offset measured from opposite views, which match each other's mirror image better about it than "
-    "about the nominal axis, is returned (no per-view motion)",
+    "scan; the axis offset measured from opposite views (in parallel beam with its lean in the detector plane, where "
+    "they confirm it), which match each other's mirror image better about it than about the nominal axis, is "
+    "returned (no per-view motion)",
     Status.MAX_ITER: "not converged: the iteration cap was reached while the poses were still moving",
     Status.NO_DESCENT: "not converged: no damped step lowered chi any further; the last accepted poses are kept",
     Status.DIVERGED: "diverged: no round of the stage made the reconstruction fit the data better; "

@@ -31,7 +31,7 @@ from ..geometry import Poses, VectorGeometry, VolumeGeometry
 from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
-from ._init import SHORT_SCAN_OPPOSITE_FRACTION, InitError, distinct_directions, opposite_fraction
+from ._init import MIRROR_MIN_T, SHORT_SCAN_OPPOSITE_FRACTION, InitError, distinct_directions, opposite_fraction
 from ._driver import (PosesResult, correlation_volume, data_at_scale, hold_vertical, nonneg_subsets, reconstruct, refined_grid,
                       run_stages, stage_background)
 from ._outer import gauge_text
@@ -91,8 +91,8 @@ class CalibrationResult(PosesResult):
         Seconds per step (``init``, ``stages``, each stage, ``final``).
     rejected_geometry : VectorGeometry or None
         The calibrated geometry that the final check rejected (the nominal
-        geometry returned, or with ``Status.AXIS_OFFSET`` the axis offset
-        that the opposite views confirm).
+        geometry returned, or with ``Status.AXIS_OFFSET`` the axis that
+        the opposite views confirm).
     truncation : Truncation or None
         Whether the sample reaches past the volume box (read off the
         nominal reconstruction); when it crosses the top or bottom face the
@@ -370,12 +370,16 @@ def calibrate(
         On any scan whose rows' ends hold material (the sample reaches the
         volume's sides), the coarse axis offset is measured again with the
         opposite views compared over the columns both hold
-        (:func:`estimate_axis_offset` with ``overlap=True``); where the
-        stages' geometry is then rejected and the opposite views match
-        their mirror images better about that offset than about the
-        nominal axis (:func:`compare_offsets`), that offset is returned
-        with ``Status.AXIS_OFFSET`` instead of the nominal geometry
-        (``docs/method.md`` §5.42).
+        (:func:`estimate_axis_offset` with ``overlap=True``), and in
+        parallel beam with opposite views each view is compared with its
+        opposite reflected about the axis, upright or leaning in the
+        detector plane where the views ask for the lean
+        (:func:`estimate_axis_roll`): the stages start from that axis;
+        where their geometry is then rejected and the opposite views match
+        their mirror images better about that axis than about the nominal
+        one (:func:`compare_offsets`), it is returned with
+        ``Status.AXIS_OFFSET`` instead of the nominal geometry
+        (``docs/method.md`` §5.42, §5.43).
         ``"auto"``: when the nominal reconstruction shows material at the
         volume's sides (:func:`detect_truncation`)
         and the volume is about as wide as the field of view (its inscribed
@@ -1209,19 +1213,23 @@ MIRROR_MIN_EXTRAPOLATIONS = 2.0
 
 def _roi_start(p, geom, poses, offset_px: float, timings):
     """A region-of-interest scan (material at the rows' ends): the coarse axis offset measured again with the opposite
-    views compared over the columns both hold (:func:`estimate_axis_offset` with ``overlap=True``), and whether their
-    mirror images confirm it against the nominal axis (:func:`compare_offsets`).
+    views compared over the columns both hold (:func:`estimate_axis_offset` with ``overlap=True``); in parallel beam
+    with opposite views, each view against its opposite reflected about the axis, upright or leaning in the detector
+    plane where the views ask for the lean (:func:`estimate_axis_roll`); and whether their mirror images confirm that
+    axis against the nominal one (:func:`compare_offsets`).
 
-    Returns ``(poses, offset_px, mirror_start)``; ``mirror_start`` is ``(offset_px, comparison)`` where the
-    opposite views match better about that offset than about the nominal axis, else None. The correlation of whole
-    rows takes out a straight line through each row's ends, which on such a scan pulls the offset toward the
-    detector's centre (rods of ``bench_accuracy.py --quick --roi 1.0``: -0.20 px found for +1.28 px).
+    Returns ``(poses, offset_px, mirror_start)``, the poses the stages start from; ``mirror_start`` is ``(offset_px,
+    roll, comparison, line)`` where the opposite views match better about that axis than about the nominal one, else
+    None (``roll`` 0 and ``line`` None where no lean was kept). The correlation of whole rows takes out a straight
+    line through each row's ends, which on such a scan pulls the offset toward the detector's centre (rods of
+    ``bench_accuracy.py --quick --roi 1.0``: -0.20 px found for +1.28 px).
     """
-    from ._init import _pairs, _scan_angles, compare_offsets, estimate_axis_offset, offset_poses
+    from ._init import _pairs, _scan_angles, compare_offsets, estimate_axis_offset
 
     t0 = time.perf_counter()
     try:
         est = estimate_axis_offset(p, geom, overlap=True)
+        line = _roi_line(p, geom, est)
     except InitError as exc:
         log.info("roi: the opposite views compared over the columns both hold give no axis offset (%s); the coarse "
                  "initialisation's %+.2f px kept", exc, offset_px)
@@ -1229,30 +1237,65 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
     finally:
         timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
-    log.info("roi: the rows' ends hold material: axis offset %+.2f px from the opposite views compared over the columns "
-             "both hold (the correlation of whole rows said %+.2f px); the stages start there", est.offset_px, offset_px)
-    poses = offset_poses(geom, float(est.offset_px))
+    offset, roll = float(est.offset_px), 0.0
+    if line is not None:
+        kept = line.comparison.second_better
+        offset, roll = (line.offset_px, line.roll) if kept else (line.upright_offset_px, 0.0)
+        line = line if kept else None
+    log.info("roi: the rows' ends hold material: axis offset %+.2f px%s from the opposite views compared over the columns "
+             "both hold (the correlation of whole rows said %+.2f px); the stages start there", offset,
+             f", leaning {np.degrees(roll):+.3f} deg" if roll else "", offset_px)
+    poses = _axis_poses(geom, offset, roll)
     try:
-        mirror = compare_offsets(p, geom, 0.0, float(est.offset_px), mismatch_slope=est.mismatch_slope)
+        mirror = compare_offsets(p, geom, 0.0, offset, mismatch_slope=est.mismatch_slope)
     except InitError as exc:
         log.info("roi: the offset not compared with the nominal axis: %s", exc)
-        return poses, float(est.offset_px), None
+        return poses, offset, None
     finally:
         timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
     log.info("roi: each view against its mirrored opposite, mean squared difference %.4g with the nominal axis, %.4g "
              "with the axis at %+.2f px (%.1f standard errors over %d pairs)", mirror.msd[0], mirror.msd[1],
-             est.offset_px, mirror.t, mirror.n_pairs)
+             offset, mirror.t, mirror.n_pairs)
     if est.mismatch_slope:
         # a 180-degree scan without its end point: the offset is the line through pairs 1-2 steps from opposite,
         # extrapolated by a step; one within MIRROR_MIN_EXTRAPOLATIONS of that step's change is not told from it
         step = _pairs(_scan_angles(geom))[2]
         change = abs(est.mismatch_slope) * step
-        if abs(est.offset_px) < MIRROR_MIN_EXTRAPOLATIONS * change:
+        if abs(offset) < MIRROR_MIN_EXTRAPOLATIONS * change:
             log.info("roi: the offset is not kept as a fallback: %.2f px is less than %g times the %.2f px by which the "
                      "pairs' line changes over the step it is extrapolated (no opposite view within half a step)",
-                     abs(est.offset_px), MIRROR_MIN_EXTRAPOLATIONS, change)
-            return poses, float(est.offset_px), None
-    return poses, float(est.offset_px), ((float(est.offset_px), mirror) if mirror.second_better else None)
+                     abs(offset), MIRROR_MIN_EXTRAPOLATIONS, change)
+            return poses, offset, None
+    return poses, offset, ((offset, roll, mirror, line) if mirror.second_better else None)
+
+
+def _axis_poses(geom, offset_px: float, roll: float):
+    """The poses of an axis offset by ``offset_px`` and leaning by ``roll`` (radians) in the detector plane."""
+    from ._init import offset_poses
+    from ._rowsums import tilt_poses
+
+    return tilt_poses(geom, roll=roll, pitch=0.0, offset_px=offset_px) if roll else offset_poses(geom, offset_px)
+
+
+def _roi_line(p, geom, est):
+    """Each view of a parallel full turn against its opposite reflected about the axis, upright or leaning
+    (:func:`estimate_axis_roll`, started from ``est``); None in cone beam or without opposite views."""
+    from ._init import _pairs, _scan_angles, estimate_axis_roll
+
+    if geom.kind != "parallel" or _pairs(_scan_angles(geom))[1] is not None:
+        return None  # cone beam, or a half turn without its end point: no view is another's reflection
+    try:
+        line = estimate_axis_roll(p, geom, est)
+    except InitError as exc:
+        log.info("roi: the axis not fitted by reflecting the opposite views: %s", exc)
+        return None
+    cmp = line.comparison
+    log.info("roi: each view against its opposite reflected about the axis: upright at %+.3f px (the overlap's estimate "
+             "%+.3f px); leaning %+.3f deg at %+.3f px, mean squared difference %.4g upright, %.4g leaning (%.1f "
+             "standard errors over %d pairs): %s", line.upright_offset_px, est.offset_px, line.roll_deg,
+             line.offset_px, cmp.msd[0], cmp.msd[1], cmp.t, cmp.n_pairs,
+             "the lean kept" if cmp.second_better else f"upright (the lean needs {MIRROR_MIN_T:g} standard errors)")
+    return line
 
 
 def _roi(p, geom, vol_geom, poses, timings):
@@ -1466,16 +1509,18 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         # a region-of-interest scan whose stages' geometry its reconstructions cannot confirm: the axis offset that
         # its opposite views confirm against the nominal axis, without a reconstruction, where its mean SNR is not
         # below the nominal one's either (docs/method.md §5.42)
-        from ._init import offset_poses
-
-        offset, mirror = mirror_start
-        off_poses = offset_poses(geom, offset)
+        offset, roll, mirror, line = mirror_start
+        off_poses = _axis_poses(geom, offset, roll)
         off_vol = reconstruct(p, vol_geom, geom.apply(off_poses))
         off_snr, off_d = _fit(scaled, off_poses, stages[-1], off_vol)
-        mirror_text = (f"axis offset {offset:+.2f} px: each view against its mirrored opposite, mean squared difference "
-                       f"{mirror.msd[0]:.4g} with the nominal axis, {mirror.msd[1]:.4g} with this one, {mirror.t:.1f} "
-                       f"standard errors over {mirror.n_pairs} pairs; mean SNR {np.mean(snr_before):.2f} dB nominal, "
-                       f"{np.mean(off_snr):.2f} dB with this offset")
+        lean = ("" if line is None else
+                f", leaning {np.degrees(roll):+.3f}° in the detector plane (each view against its opposite reflected "
+                f"about the line: mean squared difference {line.comparison.msd[0]:.4g} upright, "
+                f"{line.comparison.msd[1]:.4g} leaning, {line.comparison.t:.1f} standard errors)")
+        mirror_text = (f"axis offset {offset:+.2f} px{lean}: each view against its mirrored opposite, mean squared "
+                       f"difference {mirror.msd[0]:.4g} with the nominal axis, {mirror.msd[1]:.4g} with the offset, "
+                       f"{mirror.t:.1f} standard errors over {mirror.n_pairs} pairs; mean SNR {np.mean(snr_before):.2f} "
+                       f"dB nominal, {np.mean(off_snr):.2f} dB with this axis")
         if np.mean(off_snr) >= np.mean(snr_before):
             fallback = (off_poses, off_vol, off_snr, off_d)
         else:
