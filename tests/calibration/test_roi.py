@@ -310,3 +310,55 @@ def test_views_at_the_noise_are_compared_without_the_splines_pull_toward_fractio
         if offset == 0.0:
             # the true axis preferred to one 0.25 px off by 9-11 standard errors (without: the other by 18-20)
             assert compare_offsets(p, geom, 0.0, 0.25).t < -3.0
+
+
+def _rod_with_inclusions(n=32):
+    """The wide cylinder with four small inclusions off its axis: a rod whose symmetric profile holds most of each view
+    and whose inclusions, turning with it, are what tells its axis from a pattern fixed on the detector."""
+    centres = np.array([[0, 0, 0], [8, 3, 2], [-6, 9, -5], [3, -10, 6], [-9, -4, -8.0]])
+    axes = np.array([[40, 40, 100], [2.5, 2.5, 2.5], [2, 2, 3], [2.5, 2, 2], [2, 3, 2.0]])
+    return EllipsoidPhantom(np.array([1 / 40, 0.02, 0.02, 0.02, 0.02]), centres, axes, np.zeros((5, 3)))
+
+
+def test_a_pattern_fixed_on_the_detector_does_not_pass_for_the_axis(caplog):
+    from pdvc.calibration._pipeline import _roi_start
+
+    p, geom, vg, err = _leaning(_rod_with_inclusions(), 0.0, 2e4)
+    poses, off, kept = _roi_start(p, geom, None, 0.0, {})
+    assert isinstance(kept, tuple) and abs(off - 0.5) < 0.05  # measured +0.49 px, the views less their mean agree
+    # a flat field that varies by 0.08 across the columns (no air in the field to measure it): the raw opposite views
+    # say +1.67 px by 228 standard errors against the nominal axis; less their mean they prefer the nominal one by 17
+    ramp = p + np.float32(0.08) * np.linspace(-0.5, 0.5, p.shape[2], dtype=np.float32)[None, None, :]
+    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+        poses, off, kept = _roi_start(ramp, geom, "start", 0.0, {})
+    assert isinstance(kept, str) and "pattern fixed on the detector" in kept
+    assert poses == "start" and off == 0.0 and "is not used" in caplog.text
+    before = ramp.copy()
+    res = pdvc.calibrate(ramp, geom, vg, roi="on")
+    np.testing.assert_array_equal(ramp, before)
+    assert res.status == pdvc.Status.UNDETERMINED and not res.success
+    np.testing.assert_allclose(res.geometry.vectors, geom.vectors)
+    assert "pattern fixed on the detector" in res.message
+
+
+def test_the_smoothed_offset_is_used_only_where_the_unsmoothed_one_agrees(monkeypatch, caplog):
+    import dataclasses
+
+    from pdvc.calibration import _init
+    from pdvc.calibration._pipeline import OVERLAP_SMOOTH_AGREE_PX, _overlap_offset
+
+    p, geom, vg, err = _leaning(_foam(), 0.0, 2e4)
+    real = _init.estimate_axis_offset
+    both = {True: real(p, geom, overlap=True), False: real(p, geom, overlap=True, smooth=False)}
+    assert abs(both[True].offset_px - both[False].offset_px) < 0.05 and abs(both[True].offset_px - 0.5) < 0.05
+    assert _overlap_offset(p, geom).offset_px == both[True].offset_px
+    for jump, kept in ((0.9 * OVERLAP_SMOOTH_AGREE_PX, True), (1.1 * OVERLAP_SMOOTH_AGREE_PX, False)):
+        def estimate(*args, smooth=True, **kwargs):
+            est = real(*args, smooth=smooth, **kwargs)  # the smoothed one pulled away, as by a pattern on the detector
+            return dataclasses.replace(est, offset_px=est.offset_px + jump) if smooth else est
+
+        monkeypatch.setattr(_init, "estimate_axis_offset", estimate)
+        with caplog.at_level("WARNING", logger="pdvc.calibration"):
+            got = _overlap_offset(p, geom).offset_px
+        assert got == pytest.approx(both[True].offset_px + jump if kept else both[False].offset_px)
+    assert "the unsmoothed offset is used" in caplog.text

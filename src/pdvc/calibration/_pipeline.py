@@ -494,6 +494,8 @@ def calibrate(
     mirror_start = None  # a region-of-interest scan's axis offset that its opposite views confirm (the fallback)
     if lateral and offset_px is not None and not resume:
         poses, offset_px, mirror_start = _roi_start(p, geom, poses, offset_px, timings)
+    fixed_pattern = mirror_start if isinstance(mirror_start, str) else ""  # the views less their mean vetoed the offset
+    mirror_start = None if fixed_pattern else mirror_start
     if tilt is not None:
         poses, tilt_text = _with_tilt(poses, tilt, tilt_text, geom, offset_px, lateral)
     # the vertical motion the row sums measured: a resumed run holds what its first run held
@@ -544,7 +546,7 @@ def calibrate(
     res = _finish(
         p, geom, vol_geom, vol_initial, drv, stage_list, status, message, gamma2, weights, times, center, backend,
         fix_scale, emit, timings, dict(initial_offset_px=offset_px, options=options, truncation=trunc), p_out=p_out,
-        mirror_start=mirror_start,
+        mirror_start=mirror_start, fixed_pattern=fixed_pattern,
     )
     res = _replace(res, elapsed_s=time.perf_counter() - t_start)
     share = _fixed_pattern_share(res)
@@ -1220,15 +1222,18 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
 
     Returns ``(poses, offset_px, mirror_start)``, the poses the stages start from; ``mirror_start`` is ``(offset_px,
     roll, comparison, line)`` where the opposite views match better about that axis than about the nominal one, else
-    None (``roll`` 0 and ``line`` None where no lean was kept). The correlation of whole rows takes out a straight
+    None (``roll`` 0 and ``line`` None where no lean was kept), or a sentence where the views less their mean veto
+    the offset (:func:`_fixed_pattern_check`: the stages start from ``poses`` and the final check is to reject
+    their geometry). The correlation of whole rows takes out a straight
     line through each row's ends, which on such a scan pulls the offset toward the detector's centre (rods of
     ``bench_accuracy.py --quick --roi 1.0``: -0.20 px found for +1.28 px).
     """
-    from ._init import _pairs, _scan_angles, compare_offsets, estimate_axis_offset
+    from ._init import _pairs, _scan_angles, compare_offsets
 
     t0 = time.perf_counter()
+    start_poses = poses
     try:
-        est = estimate_axis_offset(p, geom, overlap=True)
+        est = _overlap_offset(p, geom)
         line = _roi_line(p, geom, est)
     except InitError as exc:
         log.info("roi: the opposite views compared over the columns both hold give no axis offset (%s); the coarse "
@@ -1256,6 +1261,18 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
     log.info("roi: each view against its mirrored opposite, mean squared difference %.4g with the nominal axis, %.4g "
              "with the axis at %+.2f px (%.1f standard errors over %d pairs)", mirror.msd[0], mirror.msd[1],
              offset, mirror.t, mirror.n_pairs)
+    fixed = _fixed_pattern_check(p, geom, offset)
+    if fixed is not None and fixed.t < -MIRROR_MIN_T:
+        log.warning("roi: the axis offset %+.2f px from the opposite views is not used: with the mean of the views taken "
+                    "out (what the detector adds to every view alike, a flat field that varies across the columns), the "
+                    "views match their opposites better about the nominal axis by %.1f standard errors (mean squared "
+                    "difference %.4g against %.4g); the stages start from the coarse initialisation's %+.2f px",
+                    offset, -fixed.t, fixed.msd[0], fixed.msd[1], offset_px)
+        return start_poses, offset_px, (
+            f"a pattern fixed on the detector (a flat field that varies across the columns?) pulled the comparison of "
+            f"opposite views to {offset:+.2f} px; with the mean of the views taken out they match better about the "
+            f"nominal axis by {-fixed.t:.1f} standard errors, and with no air in the field nothing measures the "
+            f"pattern")
     if est.mismatch_slope:
         # a 180-degree scan without its end point: the offset is the line through pairs 1-2 steps from opposite,
         # extrapolated by a step; one within MIRROR_MIN_EXTRAPOLATIONS of that step's change is not told from it
@@ -1267,6 +1284,61 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
                      abs(offset), MIRROR_MIN_EXTRAPOLATIONS, change)
             return poses, offset, None
     return poses, offset, ((offset, roll, mirror, line) if mirror.second_better else None)
+
+
+#: roi: the offset from opposite views smoothed along the columns is used where it is within this many pixels of the
+#: unsmoothed one (the smoothing takes out the noise's pull toward fractional shifts, 0.21-0.23 px on a cylinder at
+#: i0 = 2e3; it also weakens a fine structure against a pattern fixed on the detector: a granular scan under issue #10's
+#: flat field at -6.7 px smoothed, +1.39 px unsmoothed, +1.4 px true; docs/method.md §5.43)
+OVERLAP_SMOOTH_AGREE_PX = 0.5
+
+
+def _overlap_offset(p, geom):
+    """:func:`estimate_axis_offset` over the overlap, smoothed where it agrees with the unsmoothed estimate within
+    ``OVERLAP_SMOOTH_AGREE_PX``, else unsmoothed."""
+    from ._init import estimate_axis_offset
+
+    try:
+        smooth = estimate_axis_offset(p, geom, overlap=True)
+    except InitError as exc:
+        log.info("roi: the opposite views smoothed give no axis offset (%s); unsmoothed", exc)
+        return estimate_axis_offset(p, geom, overlap=True, smooth=False)
+    try:
+        raw = estimate_axis_offset(p, geom, overlap=True, smooth=False)
+    except InitError:
+        return smooth
+    if abs(smooth.offset_px - raw.offset_px) <= OVERLAP_SMOOTH_AGREE_PX:
+        return smooth
+    log.warning("roi: the opposite views smoothed along the columns put the axis at %+.2f px, unsmoothed at %+.2f px: "
+                "the smoothing weakened the sample's fine structure against something else (a pattern fixed on the "
+                "detector?); the unsmoothed offset is used", smooth.offset_px, raw.offset_px)
+    return raw
+
+
+def _fixed_pattern_check(p, geom, offset: float):
+    """A full turn's views less their mean, each against its mirrored opposite with the nominal axis and at ``offset``
+    (:func:`compare_offsets`); None on other scans or where they cannot be compared.
+
+    What the detector adds to every view alike (a flat field that varies across the columns, which a region-of-interest
+    scan has no air to measure) pulls the comparison of raw views toward where it looks symmetric; the mean of a full
+    turn's views holds it, and is itself symmetric about the true axis, so that the views less their mean are still
+    each other's mirror images about it, without the pattern. They hold less of a rod's information (its symmetric
+    profile is in the mean), so they are a veto only: an offset they reject by ``MIRROR_MIN_T`` standard errors is
+    not used (rods of ``bench_accuracy.py --quick --roi 1.0 --parallel --flat 0.69``: started and returned 2.0-2.2 px
+    from the truth, farther than nominal, docs/method.md §5.43)."""
+    from ._init import _pairs, _scan_angles, compare_offsets
+
+    pairs, delta, _ = _pairs(_scan_angles(geom))
+    if delta is not None or pairs.shape[0] < geom.n_views // 2 - 1:
+        return None
+    q = np.asarray(p, np.float32) - np.mean(p, axis=0, dtype=np.float64).astype(np.float32)[None]
+    try:
+        fixed = compare_offsets(q, geom, 0.0, offset)
+    except InitError:
+        return None
+    log.info("roi: the views less their mean, each against its mirrored opposite: mean squared difference %.4g with the "
+             "nominal axis, %.4g at %+.2f px (%.1f standard errors)", fixed.msd[0], fixed.msd[1], offset, fixed.t)
+    return fixed
 
 
 def _axis_poses(geom, offset_px: float, roll: float):
@@ -1448,7 +1520,7 @@ def _same_volume(made_by: Stage, stage: Stage) -> bool:
 
 
 def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra,
-            p_out=None, mirror_start=None):
+            p_out=None, mirror_start=None, fixed_pattern=""):
     """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment.
 
     ``p_out``: the data the output volumes are reconstructed from (with the rows' edges carried outward) when the
@@ -1485,7 +1557,12 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         # again against the volume the stages correlated with, on the same data, and keep that verdict
         snr_before, snr_after = _recheck(scaled, poses, last, snr_before, snr_after)
     rejected, why = None, ""
-    if p_out is not None and d0.chi <= ROI_NOMINAL_CHI:
+    if fixed_pattern:
+        # a region-of-interest scan whose views hold a pattern fixed on the detector that pulled the comparison of its
+        # opposite views (_fixed_pattern_check): the stages fitted it too, and nothing measures it without air
+        rejected, status = calibrated, Status.UNDETERMINED
+        why = f"region-of-interest scan: {fixed_pattern}"
+    elif p_out is not None and d0.chi <= ROI_NOMINAL_CHI:
         # a region-of-interest scan whose nominal fit is already at the noise once the outside's average is
         # subtracted: what the calibration moves is not seen above the noise (docs/method.md §5.17)
         rejected, status = calibrated, Status.UNDETERMINED
