@@ -313,8 +313,9 @@ def _shift_over_overlap(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shif
     sample), both of which pull the estimate toward the shift that lines up the detector's edges. Here nothing is
     padded or detrended: the mean squared difference over the overlap at every whole shift (FFT, each shift
     normalised by its own overlap, at least half the row), then on a fixed window of columns at ``1/upsample``
-    pixel around the best one (``a`` interpolated by a cubic spline), then a parabola. Both rows are smoothed along
-    the columns first (:data:`OVERLAP_SMOOTH_PX`), the window kept :data:`OVERLAP_EDGE` columns from their ends.
+    pixel around the best one (``a`` interpolated by a cubic spline), then a parabola. With ``smooth``, both rows are
+    smoothed along the columns first (:data:`OVERLAP_SMOOTH_PX`); the window is kept :data:`OVERLAP_EDGE` columns from
+    their ends.
     """
     from scipy import ndimage
 
