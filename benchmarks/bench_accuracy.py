@@ -379,7 +379,9 @@ def baseline_poses(p, geom, angles):
     pv = float(np.mean(np.linalg.norm(geom.v, axis=1)))
     # a sample wider than the field (--roi above 0.7 n): the opposite views compared over the columns both hold, as
     # pdvc does on such a scan (the correlation of whole rows is pulled toward the detector's centre there)
-    kw = dict(overlap=ROI["radius"] > 0.7)
+    # (unsmoothed, as such tools compare views: smoothed, a pattern fixed on the detector outweighs a fine structure,
+    # granular scans under --flat 0.69 at 8 px; docs/method.md §5.43)
+    kw = dict(overlap=True, smooth=False) if ROI["radius"] > 0.7 else {}
     try:
         e_top = estimate_axis_offset(p, geom, rows=top, **kw)
         e_bot = estimate_axis_offset(p, geom, rows=bot, **kw)
