@@ -265,13 +265,27 @@ def _shift_by_correlation(a: np.ndarray, b: np.ndarray, *, upsample: int, max_sh
 OVERLAP_BANDS = 16
 
 
-def _bands(x: np.ndarray) -> np.ndarray:
-    """At most ``OVERLAP_BANDS`` rows: bands of consecutive rows averaged (the columns' structure kept, the cost
+def _bands(x: np.ndarray, n_bands: int = OVERLAP_BANDS) -> np.ndarray:
+    """At most ``n_bands`` rows: bands of consecutive rows averaged (the columns' structure kept, the cost
     bounded)."""
-    if x.shape[0] <= OVERLAP_BANDS:
+    if x.shape[0] <= n_bands:
         return x
-    edges = np.linspace(0, x.shape[0], OVERLAP_BANDS + 1).round().astype(int)
+    edges = np.linspace(0, x.shape[0], n_bands + 1).round().astype(int)
     return np.add.reduceat(x, edges[:-1], axis=0) / np.diff(edges)[:, None]
+
+
+def _window(shifts: np.ndarray, n: int) -> tuple[int, int]:
+    """The columns ``lo:hi`` of a row of ``n`` where every shift of ``shifts`` (columns) keeps the shifted row inside,
+    ``OVERLAP_EDGE`` from its smoothed ends."""
+    lo = max(0, int(np.ceil(-np.min(shifts)))) + OVERLAP_EDGE
+    hi = min(n, n - int(np.ceil(np.max(shifts)))) - OVERLAP_EDGE
+    return lo, hi
+
+
+def _t(d: np.ndarray) -> float:
+    """The mean of the samples ``d`` over its standard error (inf where they all agree and are positive)."""
+    se = float(np.std(d, ddof=1) / np.sqrt(d.size))
+    return float(np.mean(d) / se) if se > 0 else (np.inf if np.mean(d) > 0 else 0.0)
 
 
 #: the rows compared over their overlap are smoothed along the columns by a Gaussian of this standard deviation, pixels,
@@ -334,8 +348,7 @@ def _shift_over_overlap(a: np.ndarray, b: np.ndarray, *, upsample: int, max_shif
     i = int(np.argmin(np.where(allowed, ssd / np.maximum(count, 1.0), np.inf)))
     s0 = float(lags[i])
     grid = s0 + np.arange(-upsample, upsample + 1) / upsample
-    lo = max(0, int(np.ceil(-grid[0]))) + OVERLAP_EDGE
-    hi = min(n, n - int(np.ceil(grid[-1]))) - OVERLAP_EDGE
+    lo, hi = _window(grid, n)
     if hi - lo < 2:
         return np.copysign(np.inf, s0), 0.0
 
@@ -623,18 +636,15 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
                         f"an angular step of 180 degrees, or 2.5 steps without one), got {pairs.shape[0]}")
     n = geom.det_shape[1]
     shifts = 2.0 * (np.array([float(first), float(second)])[None, :] + float(mismatch_slope) * delta[:, None])
-    lo = max(0, int(np.ceil(-shifts.min()))) + OVERLAP_EDGE
-    hi = min(n, n - int(np.ceil(shifts.max()))) - OVERLAP_EDGE
+    lo, hi = _window(shifts, n)
     if hi - lo < n // 2:
         raise InitError(f"compare_offsets: offsets {first:+.3g} and {second:+.3g} px leave less than half the "
                         f"{n} columns to compare")
     # (pair, shift, band of rows): each band of each pair a sample of the paired difference
     msd = np.array([_msd(*(_smoothed(_bands(x)) for x in _mirrored(projections, i, j, row_idx)), sh, lo, hi, per_row=True)
                     for (i, j), sh in zip(pairs, shifts)])
-    d = (msd[:, 0] - msd[:, 1]).ravel()
+    t = _t((msd[:, 0] - msd[:, 1]).ravel())
     msd = msd.mean(axis=2)
-    se = float(np.std(d, ddof=1) / np.sqrt(d.size))
-    t = float(np.mean(d) / se) if se > 0 else (np.inf if np.mean(d) > 0 else 0.0)
     return MirrorComparison(offsets_px=(float(first), float(second)), msd=tuple(float(m) for m in msd.mean(axis=0)),
                             t=t, n_pairs=int(pairs.shape[0]))
 
@@ -705,10 +715,9 @@ class _Reflection:
         pairs = pairs[keep]
         rows = np.arange(nr)
         nb = min(nr, ROLL_MAX_BANDS)
-        edges = np.linspace(0, nr, nb + 1).round().astype(int)
 
         def bands(x):
-            return np.add.reduceat(x, edges[:-1], axis=0) / np.diff(edges)[:, None]
+            return _bands(x, nb)
 
         self.centre_rows = bands(rows[:, None].astype(np.float64))[:, 0]
         self.height = float(nr) / nb
@@ -730,8 +739,7 @@ class _Reflection:
                             f"{np.degrees(np.arctan(max_slope)):.3g} degrees of lean")
 
     def window(self, shifts: np.ndarray) -> tuple[int, int]:
-        lo = max(0, int(np.ceil(-shifts.min()))) + OVERLAP_EDGE
-        hi = min(self.n, self.n - int(np.ceil(shifts.max()))) - OVERLAP_EDGE
+        lo, hi = _window(shifts, self.n)
         if hi - lo < self.n // 2:
             raise InitError(f"offsets of {0.5 * shifts.min():+.3g} to {0.5 * shifts.max():+.3g} px leave less than half "
                             f"the {self.n} columns to compare")
@@ -765,11 +773,8 @@ def _paired(first: np.ndarray, second: np.ndarray, lines: tuple) -> MirrorCompar
     """The paired difference of two (pair, band) mean squared differences over its standard error, each pair one
     sample (its bands share their smoothing along the rows: as samples they made a 0.026° lean of an upright foam
     3.7 standard errors better than none)."""
-    d = (first - second).mean(axis=1)
-    se = float(np.std(d, ddof=1) / np.sqrt(d.size))
-    t = float(np.mean(d) / se) if se > 0 else (np.inf if np.mean(d) > 0 else 0.0)
-    return MirrorComparison(offsets_px=lines, msd=(float(first.mean()), float(second.mean())), t=t,
-                            n_pairs=int(first.shape[0]))
+    return MirrorComparison(offsets_px=lines, msd=(float(first.mean()), float(second.mean())),
+                            t=_t((first - second).mean(axis=1)), n_pairs=int(first.shape[0]))
 
 
 def compare_axes(projections, geom: VectorGeometry, first: tuple, second: tuple) -> MirrorComparison:

@@ -1331,14 +1331,24 @@ def _fixed_pattern_check(p, geom, offset: float):
     pairs, delta, _ = _pairs(_scan_angles(geom))
     if delta is not None or pairs.shape[0] < geom.n_views // 2 - 1:
         return None
-    q = np.asarray(p, np.float32) - np.mean(p, axis=0, dtype=np.float64).astype(np.float32)[None]
     try:
-        fixed = compare_offsets(q, geom, 0.0, offset)
+        fixed = compare_offsets(_LessMean(p), geom, 0.0, offset)
     except InitError:
         return None
     log.info("roi: the views less their mean, each against its mirrored opposite: mean squared difference %.4g with the "
              "nominal axis, %.4g at %+.2f px (%.1f standard errors)", fixed.msd[0], fixed.msd[1], offset, fixed.t)
     return fixed
+
+
+class _LessMean:
+    """The views less their mean, view by view as they are read (no copy of the scan)."""
+
+    def __init__(self, p):
+        self.p = p
+        self.mean = np.mean(p, axis=0, dtype=np.float64)
+
+    def __getitem__(self, k):
+        return np.asarray(self.p[k], np.float64) - self.mean
 
 
 def _axis_poses(geom, offset_px: float, roll: float):
