@@ -14,7 +14,9 @@
   each view matches its mirrored opposite; in parallel beam
   :func:`estimate_axis_roll` finds the projected axis as a leaning line by
   reflecting each view about it (:func:`compare_axes` ranks two such
-  lines), and :func:`estimate_axis_tilt` measures the
+  lines); :func:`estimate_detector_pattern` fits a pattern fixed on the
+  detector that opposite views see mirrored (a flat field tilted across the
+  columns) with the axis offset; :func:`estimate_axis_tilt` measures the
   axis's tilt, along the beam too, from the row sums of the views (no
   reconstruction), and :func:`tilt_poses` turns it into poses;
   :class:`RowSumConsistency` scores any per-view poses against those row
@@ -37,8 +39,8 @@ from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
 from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps, jolt_views, reconstruct, refined_grid,
                       run_stages)
-from ._init import (AxisOffsetEstimate, AxisRollEstimate, InitError, MirrorComparison, compare_axes, compare_offsets,
-                    estimate_axis_offset, estimate_axis_roll, offset_poses)
+from ._init import (AxisOffsetEstimate, AxisRollEstimate, DetectorPatternEstimate, InitError, MirrorComparison, compare_axes,
+                    compare_offsets, estimate_axis_offset, estimate_axis_roll, estimate_detector_pattern, offset_poses)
 from ._rowsums import AxisTiltEstimate, RowSumConsistency, VerticalMotion, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual, sample_outline
@@ -118,6 +120,8 @@ __all__ = [
     "estimate_axis_roll",
     "AxisRollEstimate",
     "compare_axes",
+    "estimate_detector_pattern",
+    "DetectorPatternEstimate",
     "offset_poses",
     "AxisTiltEstimate",
     "RowSumConsistency",

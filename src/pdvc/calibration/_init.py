@@ -96,6 +96,7 @@ class AxisOffsetEstimate:
     pixel_size: float
     rows: np.ndarray
     mismatch_slope: float = 0.0
+    near: bool = False
 
     @property
     def lab_translation(self) -> np.ndarray:
@@ -864,6 +865,198 @@ def estimate_axis_roll(projections, geom: VectorGeometry, offset: AxisOffsetEsti
              upright[0])
     return AxisRollEstimate(offset_px=line[0], slope=slope, roll=roll, comparison=comparison, n_pairs=refl.n_pairs,
                             upright_offset_px=upright[0])
+
+
+#: estimate_detector_pattern: at most this many pairs of opposite views (evenly chosen) take part; a pattern is found
+#: where it accounts for at least ``PATTERN_MIN_SHARE`` of the opposite views' mean squared difference and its
+#: reduction of it stands ``MIRROR_MIN_T`` standard errors above zero (the 24 clean tuning scans of ``bench_accuracy.py
+#: --quick --roi 1.0 --parallel``: at most 0.49 %; under issue #10's flat field 4-99 %, all found; docs/method.md §5.44)
+PATTERN_MAX_PAIRS = 64
+PATTERN_MIN_SHARE = 0.01
+#: a 180-degree scan without its end point pairs only views up to 2.5 steps from opposite (two or three pairs, too few
+#: for a standard error): there the pattern is found where it accounts for this share at least (the 12 tuning half
+#: turns of ``--quick --roi 1.0 --half-turn``: at most 0.53 % clean, 7.8-51 % under issue #10's flat field;
+#: docs/method.md §5.44)
+PATTERN_MIN_SHARE_NEAR = 0.03
+
+
+@dataclass(frozen=True)
+class DetectorPatternEstimate:
+    """A pattern fixed on the detector that opposite views see mirrored, fitted with the axis offset
+    (:func:`estimate_detector_pattern`).
+
+    Attributes
+    ----------
+    offset_px : float, pixels
+        The axis offset (as :attr:`AxisOffsetEstimate.offset_px`) fitted with the pattern.
+    slope : float, line integral per column
+        The pattern's tilt across the columns, its part antisymmetric about the axis: what :meth:`pattern` holds.
+    plain_offset_px : float, pixels
+        The axis offset the same comparison gives without the pattern.
+    share : float
+        The fraction of the opposite views' mean squared difference (at their best offsets) the pattern accounts for.
+    t : float
+        That reduction, pair by pair (pair and band of rows on a 180° scan without its end point), over its standard
+        error.
+    n_pairs : int
+    mismatch_slope : float, pixels per radian
+        A 180° scan without its end point: the pairs' offsets' change with their mismatch, taken out of each pair's
+        shift (as :attr:`AxisOffsetEstimate.mismatch_slope`); 0 where the pairs are opposite.
+    near : bool
+        The pairs are views near opposite (a 180° scan without its end point), not opposite.
+    """
+
+    offset_px: float
+    slope: float
+    plain_offset_px: float
+    share: float
+    t: float
+    n_pairs: int
+    mismatch_slope: float = 0.0
+    near: bool = False
+
+    @property
+    def found(self) -> bool:
+        """The pattern accounts for ``PATTERN_MIN_SHARE`` of the difference at least, by ``MIRROR_MIN_T`` standard
+        errors; for pairs of views near opposite (a 180° scan without its end point) ``PATTERN_MIN_SHARE_NEAR``."""
+        if self.near:
+            return self.share >= PATTERN_MIN_SHARE_NEAR
+        return self.share >= PATTERN_MIN_SHARE and self.t > MIRROR_MIN_T
+
+    def pattern(self, det_shape) -> np.ndarray:
+        """The pattern on a detector of ``det_shape`` (rows, columns), float32: ``slope`` times the column's distance
+        from the axis's column; subtracted from every view, each view and its opposite agree about the axis."""
+        n_rows, n_cols = (int(x) for x in det_shape)
+        u = np.arange(n_cols, dtype=np.float64) - (0.5 * (n_cols - 1) + self.offset_px)
+        return np.broadcast_to((self.slope * u).astype(np.float32), (n_rows, n_cols))
+
+
+def _shared_lines(r: np.ndarray, delta: np.ndarray, slope: bool) -> tuple[np.ndarray, float]:
+    """What the pairs' differences ``r`` (pairs, bands, columns) share, fitted by least squares: a level per band, a
+    slope along the columns in proportion to each pair's mismatch ``delta`` (what the sample turned between its views,
+    where the pairs are near opposite), and with ``slope`` one slope common to every pair. Returns the fit
+    (broadcastable to ``r``) and the common slope (0 without ``slope``)."""
+    x = np.arange(r.shape[-1], dtype=np.float64) - 0.5 * (r.shape[-1] - 1)
+    fit = np.mean(r, axis=(0, 2), keepdims=True)
+    z = np.sum(r * x, axis=(1, 2)) / (r.shape[1] * np.sum(x * x))  # each pair's slope, over its bands
+    design = ([np.ones_like(z)] if slope else []) + ([delta] if np.any(delta) else [])
+    if not design:
+        return fit, 0.0
+    coef = np.linalg.lstsq(np.stack(design, axis=1), z, rcond=None)[0]
+    return fit + (np.stack(design, axis=1) @ coef)[:, None, None] * x, float(coef[0]) if slope else 0.0
+
+
+def _common_shift(a: np.ndarray, b: np.ndarray, delta: np.ndarray, *, slope: bool, upsample: int, max_shift: float):
+    """The one shift ``s`` (columns) with ``b_k(j) ≈ a_k(j + s)`` for every pair ``k`` of ``(pairs, bands, columns)``
+    stacks, by their mean squared difference over the columns both hold (whole shifts, each over its own overlap of at
+    least half the row; then a fixed window at ``1/upsample`` pixel and a parabola), less what the pairs' differences
+    share (:func:`_shared_lines`; ``delta`` the pairs' mismatches).
+
+    Returns ``(s, residual, common slope)``, the ``(pairs, bands, window)`` differences at ``s``; ``s`` is infinite
+    where the best whole shift lies at the search limit."""
+    from scipy import ndimage
+
+    n = a.shape[2]
+    best, s0 = np.inf, 0
+    for s in range(-int(max_shift), int(max_shift) + 1):
+        lo, hi = max(0, -s) + OVERLAP_EDGE, min(n, n - s) - OVERLAP_EDGE
+        if hi - lo < 0.5 * n:
+            continue
+        r = b[:, :, lo:hi] - a[:, :, lo + s:hi + s]
+        cost = float(np.sum((r - _shared_lines(r, delta, slope)[0]) ** 2)) / (hi - lo)
+        if cost < best:
+            best, s0 = cost, s
+    grid = s0 + np.arange(-upsample, upsample + 1) / upsample
+    lo, hi = _window(grid, n)
+    if abs(s0) >= max_shift - 1.0 or hi - lo < 2:
+        return np.copysign(np.inf, s0), None, 0.0
+
+    def residual(s):
+        r = b[:, :, lo:hi] - ndimage.shift(a, (0.0, 0.0, -s), order=3, mode="nearest")[:, :, lo:hi]
+        fit, common = _shared_lines(r, delta, slope)
+        return r - fit, common
+
+    msd = np.array([np.mean(residual(s)[0] ** 2) for s in grid])
+    j = int(np.argmin(msd))
+    s = float(grid[j] + _vertex(-msd, j) / upsample)
+    return (s, *residual(s))
+
+
+def estimate_detector_pattern(projections, geom: VectorGeometry, *, rows=None, upsample: int = 10,
+                              max_offset: float | None = None, mismatch_slope: float | None = None) -> DetectorPatternEstimate:
+    """A pattern fixed on the detector (a flat field tilted across the columns) and the axis offset, fitted together to
+    each view and its mirrored opposite.
+
+    What the detector adds to every view alike, ``f(j)`` at column ``j``, a view and its opposite see mirrored about
+    the axis's column ``c``: the difference of a pair holds ``f(2c - j) - f(j)``, the same for every pair. A
+    region-of-interest scan has no air to measure ``f``, and a comparison of opposite views finds the offset where
+    ``f`` looks symmetric (issue #10's flat field, 8 % across the columns: 2 px off on rods wider than the field, 9 px
+    on granular samples). Here the offset is fitted with a straight line along the columns common to every pair (one
+    per band of rows, its mean level a nuisance), so that the pattern's part antisymmetric about the axis, ``slope ·
+    (j - c)``, comes out with the offset; the part symmetric about the axis is consistent data (a reconstruction
+    explains it) and is left. The offset with the line is weaker where a view's profile is itself nearly a line
+    across the field (a rod much wider than the field: a shift of its dome is such a line): there the two trade
+    against each other, and the views less their mean (:func:`compare_offsets` on them, as the pipeline's check
+    does) tell the offset without the pattern.
+
+    Pairs of views within half an angular step of 180° (a full turn; at most ``PATTERN_MAX_PAIRS``), their rows in
+    at most ``OVERLAP_BANDS`` bands smoothed along the columns as :func:`estimate_axis_offset` with ``overlap=True``
+    smooths them (all rows in parallel beam, the central quarter in cone beam, ``rows`` to choose). A 180° scan
+    without its end point has no such pair: there the views up to 2.5 steps from opposite are paired, as
+    :func:`estimate_axis_offset` pairs them, each pair's first view shifted by what the sample turned between them
+    (``mismatch_slope`` times the pair's mismatch; by default :func:`estimate_axis_offset`'s with ``overlap=True``:
+    the pattern is the same in every pair and does not change that slope).
+
+    Raises
+    ------
+    InitError
+        Fewer than two pairs of views (near) opposite, or the best offset at the search limit (``max_offset``,
+        default a quarter of the columns).
+    """
+    if not isinstance(geom, VectorGeometry):
+        raise InputTypeError(f"geom must be a pdvc.VectorGeometry, got {type(geom).__name__}")
+    shape = np.shape(projections)
+    if shape != (geom.n_views, *geom.det_shape):
+        raise ShapeError(f"projections must have shape {(geom.n_views, *geom.det_shape)} (n_views, n_rows, n_cols) "
+                         f"like geom, got {shape}")
+    n = geom.det_shape[1]
+    lim = n / 4 if max_offset is None else float(max_offset)
+    if not (np.isfinite(lim) and lim > 0):
+        raise InitError(f"max_offset must be a positive number of pixels, got {max_offset!r}")
+    from scipy import ndimage
+
+    pairs, delta, _ = _pairs(_scan_angles(geom))
+    if pairs.shape[0] < 2:
+        raise InitError("estimate_detector_pattern needs two pairs of opposite views or more (each view with one within "
+                        f"half an angular step of 180 degrees, or 2.5 steps without one), got {pairs.shape[0]}")
+    keep = np.unique(np.linspace(0, pairs.shape[0] - 1, min(PATTERN_MAX_PAIRS, pairs.shape[0])).round().astype(int))
+    pairs, delta = pairs[keep], (np.zeros(keep.size) if delta is None else delta[keep])
+    slope_m, near = 0.0, bool(np.any(delta))
+    if near:
+        # the line through the pairs' own offsets: a pattern shifts them all alike (and may weaken their correlation
+        # below what an offset estimate accepts), not the line's slope
+        slope_m = float(mismatch_slope if mismatch_slope is not None else estimate_axis_offset(
+            projections, geom, rows=rows, overlap=True, min_correlation=-1.0, max_spread=np.inf).mismatch_slope)
+    row_idx = _rows(rows, geom)
+    stacks = [[_smoothed(_bands(x)) for x in _mirrored(projections, i, j, row_idx)] for i, j in pairs]
+    a = np.array([ndimage.shift(s[0], (0.0, -2.0 * slope_m * d), order=3, mode="nearest") if d else s[0]
+                  for s, d in zip(stacks, delta)])
+    b = np.array([s[1] for s in stacks])
+    (s0, r0, _), (s1, r1, common) = (_common_shift(a, b, delta, slope=f, upsample=int(upsample), max_shift=2 * lim + 1)
+                                      for f in (False, True))
+    if not (np.isfinite(s0) and np.isfinite(s1)):
+        raise InitError(f"no estimate: the best whole shift of the opposite views lies at the search limit |offset| = "
+                        f"{lim:g} px (raise max_offset, or the opposite views do not overlap)")
+    # the samples of the paired reduction: the pairs, or where there are only a few near opposite, pairs and bands
+    plain, fitted = (np.mean(r ** 2, axis=2).ravel() if near else np.mean(r ** 2, axis=(1, 2)) for r in (r0, r1))
+    slope = -0.5 * common  # the difference holds f(2c - j) - f(j): minus twice the antisymmetric part
+    share = float(1.0 - np.mean(fitted) / np.mean(plain)) if np.mean(plain) > 0 else 0.0
+    est = DetectorPatternEstimate(offset_px=0.5 * s1, slope=slope, plain_offset_px=0.5 * s0, share=share,
+                                  t=_t(plain - fitted), n_pairs=int(pairs.shape[0]), mismatch_slope=slope_m, near=near)
+    log.info("detector pattern from %d pairs of opposite views: tilt %+.3g per column antisymmetric about the axis, "
+             "%.1f%% of their mean squared difference (%.1f standard errors); axis offset %+.3f px with it, %+.3f px "
+             "without", est.n_pairs, slope, 100 * share, est.t, est.offset_px, est.plain_offset_px)
+    return est
 
 
 def offset_poses(geom: VectorGeometry, offset_px: float) -> Poses:
