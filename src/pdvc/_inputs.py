@@ -428,4 +428,22 @@ def inspect_scan(config) -> tuple[list, list]:
             + ("roi = 'auto' compensates the scan" if cover >= ROI_FIELD_COVER else
                f"roi = 'auto' needs {100 * ROI_FIELD_COVER:.0f}% (a volume as wide as the field) and leaves it alone")
         )
+        lines.append(_pattern_line(p, g))
     return lines, problems
+
+
+def _pattern_line(p, g) -> str:
+    """What a region-of-interest scan's opposite views say of a pattern fixed on the detector (no air to measure it)."""
+    from .calibration import InitError, estimate_detector_pattern
+
+    try:
+        est = estimate_detector_pattern(p, g)
+    except InitError as exc:
+        return f"pattern fixed on the detector: not looked for ({exc})"
+    figures = (f"a tilt of {est.slope:+.3g} per column antisymmetric about the axis, {100 * est.share:.1f}% of the "
+               f"opposite views' mean squared difference ({est.t:.1f} standard errors); axis offset {est.offset_px:+.2f} "
+               f"px with it, {est.plain_offset_px:+.2f} px without")
+    if est.found:
+        return (f"pattern fixed on the detector (a flat field that varies across the columns?): {figures}; calibrate "
+                f"subtracts it (air = 'auto')")
+    return f"pattern fixed on the detector: none found ({figures})"

@@ -191,6 +191,23 @@ def test_inspect_says_whether_roi_auto_compensates(tmp_path):
     narrow = "\n".join(inspect_scan(tmp_path / "narrow.toml")[0])
     assert "region-of-interest scan" in wide and "roi = 'auto' compensates the scan" in wide
     assert "roi = 'auto' needs 90%" in narrow and "leaves it alone" in narrow
+    assert "pattern fixed on the detector: none found" in wide  # a half turn: views near opposite
+
+
+def test_inspect_says_what_pattern_fixed_on_the_detector_a_full_turn_shows(tmp_path):
+    from pdvc._inputs import inspect_scan
+
+    p, geom, vg, err = _leaning(_foam(), 0.0, 2e4)
+    base = ('[data]\npath = "p.npy"\n[geometry]\ntype = "parallel"\npixel = 1.0\n'
+            'angles = { start = 0, stop = 360, count = 90 }\n')
+    (tmp_path / "scan.toml").write_text(base)
+    np.save(tmp_path / "p.npy", p)
+    clean = "\n".join(inspect_scan(tmp_path / "scan.toml")[0])
+    assert "pattern fixed on the detector: none found" in clean
+    np.save(tmp_path / "p.npy", p + np.float32(0.08) * np.linspace(-0.5, 0.5, p.shape[2], dtype=np.float32))
+    ramp = "\n".join(inspect_scan(tmp_path / "scan.toml")[0])
+    assert "pattern fixed on the detector (a flat field that varies across the columns?): a tilt of +0.0018" in ramp
+    assert "calibrate subtracts it" in ramp
 
 
 def test_cross_validation_prefers_the_true_geometry_of_a_region_of_interest_scan():
@@ -333,9 +350,26 @@ def test_a_pattern_fixed_on_the_detector_does_not_pass_for_the_axis(caplog):
         poses, off, kept = _roi_start(ramp, geom, "start", 0.0, {})
     assert isinstance(kept, str) and "pattern fixed on the detector" in kept
     assert poses == "start" and off == 0.0 and "is not used" in caplog.text
+
+
+def test_a_pattern_fixed_on_the_detector_is_fitted_with_the_axis_and_subtracted(monkeypatch):
+    from pdvc.calibration import _init
+
+    p, geom, vg, err = _leaning(_rod_with_inclusions(), 0.0, 2e4)
+    clean = pdvc.calibrate(p, geom, vg, roi="on")
+    assert clean.options["detector_pattern"].startswith("none found")
+    ramp = p + np.float32(0.08) * np.linspace(-0.5, 0.5, p.shape[2], dtype=np.float32)[None, None, :]
     before = ramp.copy()
     res = pdvc.calibrate(ramp, geom, vg, roi="on")
     np.testing.assert_array_equal(ramp, before)
+    # the tilt (0.08 over 44 columns) and the axis fitted together: +0.49 px (+1.72 px without the tilt); the run then
+    # ends where it ends on the scan without the pattern (measured 0.068 px both, from 0.5 px nominal)
+    assert res.options["detector_pattern"].startswith("subtracted: a tilt of +0.00182 per column")
+    assert res.success and err(res.geometry) < 0.1 and abs(err(res.geometry) - err(clean.geometry)) < 0.01
+    # without the fit (as before it), the views less their mean veto the offset the pattern pulled the views to
+    monkeypatch.setattr(_init, "PATTERN_MIN_SHARE", np.inf)
+    res = pdvc.calibrate(ramp, geom, vg, roi="on")
+    assert res.options["detector_pattern"].startswith("none found")
     assert res.status == pdvc.Status.UNDETERMINED and not res.success
     np.testing.assert_allclose(res.geometry.vectors, geom.vectors)
     assert "pattern fixed on the detector" in res.message

@@ -491,6 +491,9 @@ def calibrate(
     weights, trunc = _truncation(truncation, weights, None if air == "auto" else p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
     lateral = roi == "on" or (trunc is not None and trunc.lateral)
+    pattern_text = ""
+    if lateral and air == "auto":  # before anything compares opposite views or fits the motion
+        p, vol_initial, pattern_text = _roi_pattern(p, geom, vol_geom, vol_initial, timings)
     mirror_start = None  # a region-of-interest scan's axis offset that its opposite views confirm (the fallback)
     if lateral and offset_px is not None and not resume:
         poses, offset_px, mirror_start = _roi_start(p, geom, poses, offset_px, timings)
@@ -535,6 +538,8 @@ def calibrate(
         model=drv.model_choice.text() if drv.model_choice is not None else "as given (no candidates compared)",
         reconstruction=short_scan or "as the stages set it", scales=scales_text,
     )
+    if pattern_text:
+        options["detector_pattern"] = pattern_text
     if tilt_text:
         options["axis_tilt"] = tilt_text
     if guard_text:
@@ -1284,6 +1289,33 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
                      abs(offset), MIRROR_MIN_EXTRAPOLATIONS, change)
             return poses, offset, None
     return poses, offset, ((offset, roll, mirror, line) if mirror.second_better else None)
+
+
+def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
+    """A region-of-interest scan: a pattern fixed on the detector that its opposite views (or, on a 180-degree scan
+    without its end point, its views near opposite) see mirrored (a flat field tilted across the columns, which such
+    a scan has no air to measure), fitted with the axis offset (:func:`estimate_detector_pattern`) and, where found,
+    its part antisymmetric about the axis subtracted from every view (a copy) and the nominal volume reconstructed
+    again. Returns ``(p, vol_initial, text)``; ``text`` is empty where the scan has no such views to compare."""
+    from ._init import estimate_detector_pattern
+
+    t0 = time.perf_counter()
+    try:
+        est = estimate_detector_pattern(p, geom)
+    except InitError as exc:
+        log.info("roi: no pattern fixed on the detector looked for: %s", exc)
+        return p, vol_initial, ""
+    finally:
+        timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
+    figures = (f"a tilt of {est.slope:+.3g} per column antisymmetric about the axis, {100 * est.share:.1f}% of the "
+               f"opposite views' mean squared difference ({est.t:.1f} standard errors), axis offset {est.offset_px:+.2f} "
+               f"px with it, {est.plain_offset_px:+.2f} px without")
+    if not est.found:
+        return p, vol_initial, f"none found (each view against its mirrored opposite: {figures})"
+    log.warning("roi: a pattern fixed on the detector (a flat field that varies across the columns?), which the opposite "
+                "views see mirrored: %s; its part antisymmetric about the axis is subtracted from every view", figures)
+    p = p - est.pattern(geom.det_shape)[None]
+    return p, reconstruct(p, vol_geom, geom), f"subtracted: {figures}"
 
 
 #: roi: the offset from opposite views smoothed along the columns is used where it is within this many pixels of the

@@ -121,6 +121,8 @@ def build_report(out, result, *, projections, angles, params_lab, inputs=()):
         summary["scales"] = options["scales"]
     if "air" in options:
         summary["air level (what the rays that miss the sample read)"] = options["air"]
+    if "detector_pattern" in options:
+        summary["pattern fixed on the detector (region of interest, opposite views)"] = options["detector_pattern"]
     if "background" in options:
         summary["background per view"] = options["background"]
     if "zingers" in options:
