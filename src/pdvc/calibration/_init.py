@@ -96,7 +96,6 @@ class AxisOffsetEstimate:
     pixel_size: float
     rows: np.ndarray
     mismatch_slope: float = 0.0
-    near: bool = False
 
     @property
     def lab_translation(self) -> np.ndarray:
@@ -992,7 +991,7 @@ def estimate_detector_pattern(projections, geom: VectorGeometry, *, rows=None, u
     region-of-interest scan has no air to measure ``f``, and a comparison of opposite views finds the offset where
     ``f`` looks symmetric (issue #10's flat field, 8 % across the columns: 2 px off on rods wider than the field, 9 px
     on granular samples). Here the offset is fitted with a straight line along the columns common to every pair (one
-    per band of rows, its mean level a nuisance), so that the pattern's part antisymmetric about the axis, ``slope ·
+    slope; a level per band of rows as a nuisance), so that the pattern's part antisymmetric about the axis, ``slope ·
     (j - c)``, comes out with the offset; the part symmetric about the axis is consistent data (a reconstruction
     explains it) and is left. The offset with the line is weaker where a view's profile is itself nearly a line
     across the field (a rod much wider than the field: a shift of its dome is such a line): there the two trade
