@@ -440,9 +440,7 @@ def _pattern_line(p, g) -> str:
         est = estimate_detector_pattern(p, g)
     except InitError as exc:
         return f"pattern fixed on the detector: not looked for ({exc})"
-    figures = (f"a tilt of {est.slope:+.3g} per column antisymmetric about the axis, {100 * est.share:.1f}% of the "
-               f"opposite views' mean squared difference ({est.t:.1f} standard errors); axis offset {est.offset_px:+.2f} "
-               f"px with it, {est.plain_offset_px:+.2f} px without")
+    figures = est.describe()
     if est.found:
         return (f"pattern fixed on the detector (a flat field that varies across the columns?): {figures}; calibrate "
                 f"subtracts it (air = 'auto')")

@@ -922,6 +922,12 @@ class DetectorPatternEstimate:
             return self.share >= PATTERN_MIN_SHARE_NEAR
         return self.share >= PATTERN_MIN_SHARE and self.t > MIRROR_MIN_T
 
+    def describe(self) -> str:
+        """The estimate in words (the log, ``pdvc inspect`` and the report)."""
+        return (f"a tilt of {self.slope:+.3g} per column antisymmetric about the axis, {100 * self.share:.1f}% of the "
+                f"opposite views' mean squared difference ({self.t:.1f} standard errors), axis offset "
+                f"{self.offset_px:+.2f} px with it, {self.plain_offset_px:+.2f} px without")
+
     def pattern(self, det_shape) -> np.ndarray:
         """The pattern on a detector of ``det_shape`` (rows, columns), float32: ``slope`` times the column's distance
         from the axis's column; subtracted from every view, each view and its opposite agree about the axis."""

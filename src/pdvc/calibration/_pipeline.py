@@ -1307,9 +1307,7 @@ def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
         return p, vol_initial, ""
     finally:
         timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
-    figures = (f"a tilt of {est.slope:+.3g} per column antisymmetric about the axis, {100 * est.share:.1f}% of the "
-               f"opposite views' mean squared difference ({est.t:.1f} standard errors), axis offset {est.offset_px:+.2f} "
-               f"px with it, {est.plain_offset_px:+.2f} px without")
+    figures = est.describe()
     if not est.found:
         return p, vol_initial, f"none found (each view against its mirrored opposite: {figures})"
     log.warning("roi: a pattern fixed on the detector (a flat field that varies across the columns?), which the opposite "
