@@ -114,7 +114,7 @@ AIR = {"drift": 0.0, "flat": 1.0, "flat_rows": 0.0, "zingers": 0.0, "zinger_size
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG);
 # --parallel: every case a parallel scan over a full turn
-SCAN = {"half_turn": False, "short_scan": False, "parallel": False, "supersampling": 2}
+SCAN = {"half_turn": False, "end_point": False, "short_scan": False, "parallel": False, "supersampling": 2}
 # --roi: the samples' radius in units of the volume's height n (0: the families' own, 0.36 n, inside the volume), on a
 # volume 1.4 n wide, as wide as the field of view. Above 0.7 n the sample is wider than the detector's field of view:
 # a region-of-interest scan (lateral truncation)
@@ -438,7 +438,7 @@ def run_case(c: Case) -> dict:
         angles = np.linspace(0.0, np.pi + 2 * fan, c.n_views)
         row["arc_deg"] = float(np.rad2deg(angles[-1]))
     else:
-        angles = np.linspace(0.0, np.pi if SCAN["half_turn"] else 2 * np.pi, c.n_views, endpoint=False)
+        angles = np.linspace(0.0, np.pi if SCAN["half_turn"] else 2 * np.pi, c.n_views, endpoint=SCAN["end_point"])
     t0 = time.perf_counter()
     geom = geometry(c, angles)
     rv, t = true_poses(c, angles)
@@ -571,7 +571,10 @@ def header(args) -> list:
            if AIR["hardening"] else "")
         + (f"; pixels sampled at {SCAN['supersampling']}x{SCAN['supersampling']} points (--supersampling)"
            if SCAN["supersampling"] != 2 else "")
-        + ("; every case a parallel scan over [0, 180 deg) (--half-turn)" if SCAN["half_turn"] else "")
+        + (f"; every case a parallel scan over [0, 180 deg{']' if SCAN['end_point'] else ')'} (--half-turn"
+           f"{' --end-point' if SCAN['end_point'] else ''})" if SCAN["half_turn"] else "")
+        + ("; every full turn over [0, 360 deg], its last view at 360 deg repeating the first (--end-point)"
+           if SCAN["end_point"] and not SCAN["half_turn"] else "")
         + ("; every case a parallel scan over a full turn (--parallel)" if SCAN["parallel"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
            f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else "")
@@ -730,6 +733,11 @@ def main(argv=None) -> int:
                          "before the noise (cupping; default 0: none)")
     ap.add_argument("--half-turn", action="store_true",
                     help="every case a parallel scan over [0, 180 deg) instead of a full turn (cone angle 0)")
+    ap.add_argument("--end-point", action="store_true",
+                    help="the angle list with its end point: with --half-turn over [0, 180 deg] (91 views every 2 deg, "
+                         "as issue #10's synchrotron scan: the first and last views are each other's mirror), else "
+                         "over [0, 360 deg] (the last view repeats the first at the end of the scan, as many lab "
+                         "scanners record it)")
     ap.add_argument("--parallel", action="store_true",
                     help="every case a parallel scan over a full turn (cone angle 0)")
     ap.add_argument("--short-scan", action="store_true",
@@ -764,6 +772,9 @@ def main(argv=None) -> int:
     AIR["hardening"] = float(args.hardening)
     SCAN["half_turn"] = bool(args.half_turn)
     SCAN["short_scan"] = bool(args.short_scan)
+    if args.end_point and args.short_scan:
+        ap.error("--end-point and --short-scan exclude each other (a short scan holds both end views already)")
+    SCAN["end_point"] = bool(args.end_point)
     SCAN["parallel"] = bool(args.parallel)
     if args.supersampling < 1:
         ap.error("--supersampling must be a positive integer")

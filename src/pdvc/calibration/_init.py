@@ -80,7 +80,7 @@ class AxisOffsetEstimate:
     rows : (n_rows_used,) int64
         Detector rows that were correlated.
     mismatch_slope : float, pixels per radian
-        A 180° scan without its end point: how the pairs' offsets change
+        A 180° scan (pairs of views near opposite): how the pairs' offsets change
         with their mismatch ``δ = θ_j − θ_i − π`` (the line extrapolated to
         ``δ = 0``); 0 where the pairs are opposite.
     """
@@ -201,9 +201,14 @@ def _near_opposite_pairs(theta: np.ndarray, step: float, reach: float = 2.5) -> 
 def _pairs(theta: np.ndarray, max_mismatch: float | None = None) -> tuple[np.ndarray, np.ndarray | None, float]:
     """The pairs :func:`estimate_axis_offset` correlates, their mismatches (None where they are opposite) and the
     angular step: opposite views, else (``max_mismatch`` unset) the views up to 2.5 steps from opposite where they
-    hold two different mismatches to extrapolate from."""
+    hold two different mismatches to extrapolate from.
+
+    "Else" is fewer than two opposite pairs: a 180° scan with its end point has one (its first and last views), too
+    few for anything that needs a spread over pairs (a standard error, a slope common to every pair); its views near
+    opposite hold that pair and five more (1 and 2 steps from opposite), as those of a 180° scan without its end point
+    do."""
     pairs, step = _opposite_pairs(theta, max_mismatch)
-    if pairs.shape[0] == 0 and max_mismatch is None and step > 0:
+    if pairs.shape[0] < 2 and max_mismatch is None and step > 0:
         near, delta = _near_opposite_pairs(theta, step)
         if np.unique(np.round(delta / step)).size >= 2:
             return near, delta, step
@@ -407,11 +412,11 @@ def estimate_axis_offset(
     cross-correlation refined to ``1/upsample`` pixel and a parabola; the
     pair's offset is ``s / 2``. The estimate is the median over pairs.
 
-    This works for 180° scans that include the end point (one pair, 0 and
-    180°), 360° scans (one pair per two views) and irregular angle lists.
-    A 180° scan **without** its end point (``n`` views over ``[0, π)``, the
-    usual synchrotron list) has no opposite view within half a step: then
-    (``max_mismatch`` unset) the views up to 2.5 steps from opposite are
+    This works for 360° scans (one pair per two views), 180° scans and
+    irregular angle lists. A 180° scan **without** its end point (``n``
+    views over ``[0, π)``, the usual synchrotron list) has no opposite view
+    within half a step, one with its end point only one pair (0 and 180°):
+    then (``max_mismatch`` unset) the views up to 2.5 steps from opposite are
     paired (view 0 with the last views), each pair's offset is biased by
     how far the sample turned between them (its projected motion over the
     mismatch ``δ``), and the offset is the straight line through the
@@ -546,8 +551,8 @@ def estimate_axis_offset(
         slope, med = np.polyfit(dg, offsets[good], 1)
         med = float(med)
         resid = offsets[good] - (med + slope * dg)
-        log.info("no opposite view within half a step: axis offset extrapolated to 180° from %d pairs %.3g-%.3g "
-                 "steps from opposite (slope %.3g px per step)", dg.size, np.abs(dg).min() / step,
+        log.info("fewer than two pairs of views opposite within half a step: axis offset extrapolated to 180° from %d "
+                 "pairs %.3g-%.3g steps from opposite (slope %.3g px per step)", dg.size, np.abs(dg).min() / step,
                  np.abs(dg).max() / step, slope * step)
     spread = float(_MAD_TO_SIGMA * np.median(np.abs(resid))) if resid.size > 1 else 0.0
     med_ncc = float(np.median(nccs))
@@ -615,8 +620,8 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
     pairs and bands of rows (:func:`estimate_axis_offset`'s, at most ``OVERLAP_BANDS`` per pair, each band of each
     pair one sample: a 180° scan has only 2 or 3 pairs) and its standard error.
 
-    A 180° scan without its end point has no opposite view within half a step: there the views up to 2.5 steps from
-    opposite are paired, as :func:`estimate_axis_offset` pairs them, each pair's mirror shifted by what the sample
+    A 180° scan has no opposite view within half a step (without its end point) or one pair (with it): there the views
+    up to 2.5 steps from opposite are paired, as :func:`estimate_axis_offset` pairs them, each pair's mirror shifted by what the sample
     turned between its views (``mismatch_slope``, the estimate's, times the pair's mismatch) for both offsets.
 
     In parallel beam a view is its opposite's mirror image about the projected axis, whatever lies outside the
@@ -710,7 +715,7 @@ class _Reflection:
         if delta is not None or pairs.shape[0] < 2:
             # views 1-2 steps from opposite differ by what the sample turned between them, which no reflection holds
             raise InitError("the axis's line needs two pairs of opposite views or more (each view with one within "
-                            f"half an angular step of 180 degrees), got {0 if delta is not None else pairs.shape[0]}")
+                            f"half an angular step of 180 degrees), got {_opposite_pairs(_scan_angles(geom), None)[0].shape[0]}")
         keep = np.unique(np.linspace(0, pairs.shape[0] - 1, min(pairs.shape[0], ROLL_MAX_PAIRS)).round().astype(int))
         pairs = pairs[keep]
         rows = np.arange(nr)
@@ -824,8 +829,8 @@ def estimate_axis_roll(projections, geom: VectorGeometry, offset: AxisOffsetEsti
     columns and bands of rows minimised from ``offset``'s upright axis (quadratic fits, within ``ROLL_MAX_DEG``).
 
     Parallel beam only (in cone beam a view is its opposite's mirror image only near the mid-plane: a lean of 0.96°
-    found for 0.8° at a half-angle of 2.9°), with opposite views (a full turn; a 180° scan without its end point has
-    none). The estimate's ``comparison`` says whether the views prefer the line to the best upright axis.
+    found for 0.8° at a half-angle of 2.9°), with opposite views (a full turn; a 180° scan has none, or one pair with
+    its end point). The estimate's ``comparison`` says whether the views prefer the line to the best upright axis.
 
     Raises
     ------
@@ -872,8 +877,8 @@ def estimate_axis_roll(projections, geom: VectorGeometry, offset: AxisOffsetEsti
 #: --quick --roi 1.0 --parallel``: at most 0.49 %; under issue #10's flat field 4-99 %, all found; docs/method.md §5.44)
 PATTERN_MAX_PAIRS = 64
 PATTERN_MIN_SHARE = 0.01
-#: a 180-degree scan without its end point pairs only views up to 2.5 steps from opposite (two or three pairs, too few
-#: for a standard error): there the pattern is found where it accounts for this share at least (the 12 tuning half
+#: a 180-degree scan pairs only views up to 2.5 steps from opposite (three pairs without its end point, six with it,
+#: too few for a standard error): there the pattern is found where it accounts for this share at least (the 12 tuning half
 #: turns of ``--quick --roi 1.0 --half-turn``: at most 0.53 % clean, 7.8-51 % under issue #10's flat field;
 #: docs/method.md §5.44)
 PATTERN_MIN_SHARE_NEAR = 0.03
@@ -895,14 +900,14 @@ class DetectorPatternEstimate:
     share : float
         The fraction of the opposite views' mean squared difference (at their best offsets) the pattern accounts for.
     t : float
-        That reduction, pair by pair (pair and band of rows on a 180° scan without its end point), over its standard
+        That reduction, pair by pair (pair and band of rows on a 180° scan), over its standard
         error.
     n_pairs : int
     mismatch_slope : float, pixels per radian
-        A 180° scan without its end point: the pairs' offsets' change with their mismatch, taken out of each pair's
+        A 180° scan: the pairs' offsets' change with their mismatch, taken out of each pair's
         shift (as :attr:`AxisOffsetEstimate.mismatch_slope`); 0 where the pairs are opposite.
     near : bool
-        The pairs are views near opposite (a 180° scan without its end point), not opposite.
+        The pairs are views near opposite (a 180° scan), not opposite.
     """
 
     offset_px: float
@@ -917,7 +922,7 @@ class DetectorPatternEstimate:
     @property
     def found(self) -> bool:
         """The pattern accounts for ``PATTERN_MIN_SHARE`` of the difference at least, by ``MIRROR_MIN_T`` standard
-        errors; for pairs of views near opposite (a 180° scan without its end point) ``PATTERN_MIN_SHARE_NEAR``."""
+        errors; for pairs of views near opposite (a 180° scan) ``PATTERN_MIN_SHARE_NEAR``."""
         if self.near:
             return self.share >= PATTERN_MIN_SHARE_NEAR
         return self.share >= PATTERN_MIN_SHARE and self.t > MIRROR_MIN_T
@@ -1007,7 +1012,7 @@ def estimate_detector_pattern(projections, geom: VectorGeometry, *, rows=None, u
     Pairs of views within half an angular step of 180° (a full turn; at most ``PATTERN_MAX_PAIRS``), their rows in
     at most ``OVERLAP_BANDS`` bands smoothed along the columns as :func:`estimate_axis_offset` with ``overlap=True``
     smooths them (all rows in parallel beam, the central quarter in cone beam, ``rows`` to choose). A 180° scan
-    without its end point has no such pair: there the views up to 2.5 steps from opposite are paired, as
+    has no such pair, or one with its end point: there the views up to 2.5 steps from opposite are paired, as
     :func:`estimate_axis_offset` pairs them, each pair's first view shifted by what the sample turned between them
     (``mismatch_slope`` times the pair's mismatch; by default :func:`estimate_axis_offset`'s with ``overlap=True``:
     the pattern is the same in every pair and does not change that slope).

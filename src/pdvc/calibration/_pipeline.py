@@ -1279,24 +1279,23 @@ def _roi_start(p, geom, poses, offset_px: float, timings):
             f"nominal axis by {-fixed.t:.1f} standard errors, and with no air in the field nothing measures the "
             f"pattern")
     if est.mismatch_slope:
-        # a 180-degree scan without its end point: the offset is the line through pairs 1-2 steps from opposite,
-        # extrapolated by a step; one within MIRROR_MIN_EXTRAPOLATIONS of that step's change is not told from it
+        # a 180-degree scan: the offset is the line through pairs 0-2 steps from opposite, extrapolated by up to a
+        # step; one within MIRROR_MIN_EXTRAPOLATIONS of that step's change is not told from it
         step = _pairs(_scan_angles(geom))[2]
         change = abs(est.mismatch_slope) * step
         if abs(offset) < MIRROR_MIN_EXTRAPOLATIONS * change:
             log.info("roi: the offset is not kept as a fallback: %.2f px is less than %g times the %.2f px by which the "
-                     "pairs' line changes over the step it is extrapolated (no opposite view within half a step)",
-                     abs(offset), MIRROR_MIN_EXTRAPOLATIONS, change)
+                     "pairs' line changes over the step it is extrapolated (fewer than two pairs of views opposite "
+                     "within half a step)", abs(offset), MIRROR_MIN_EXTRAPOLATIONS, change)
             return poses, offset, None
     return poses, offset, ((offset, roll, mirror, line) if mirror.second_better else None)
 
 
 def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
-    """A region-of-interest scan: a pattern fixed on the detector that its opposite views (or, on a 180-degree scan
-    without its end point, its views near opposite) see mirrored (a flat field tilted across the columns, which such
-    a scan has no air to measure), fitted with the axis offset (:func:`estimate_detector_pattern`) and, where found,
-    its part antisymmetric about the axis subtracted from every view (a copy) and the nominal volume reconstructed
-    again. Returns ``(p, vol_initial, text)``; ``text`` is empty where the scan has no such views to compare."""
+    """A region-of-interest scan: a pattern fixed on the detector that its opposite views (or, on a 180-degree scan, its
+    views near opposite) see mirrored (a flat field tilted across the columns, which such a scan has no air to
+    measure), fitted with the axis offset (:func:`estimate_detector_pattern`) and, where found, its part antisymmetric
+    about the axis subtracted from every view (a copy) and the nominal volume reconstructed again. Returns ``(p, vol_initial, text)``; ``text`` is empty where the scan has no such views to compare."""
     from ._init import estimate_detector_pattern
 
     t0 = time.perf_counter()
@@ -1395,7 +1394,7 @@ def _roi_line(p, geom, est):
     from ._init import _pairs, _scan_angles, estimate_axis_roll
 
     if geom.kind != "parallel" or _pairs(_scan_angles(geom))[1] is not None:
-        return None  # cone beam, or a half turn without its end point: no view is another's reflection
+        return None  # cone beam, or a half turn: fewer than two views are another's reflection
     try:
         line = estimate_axis_roll(p, geom, est)
     except InitError as exc:
