@@ -63,6 +63,7 @@ scan), then times ``pdvc.calibrate``.  Printed per size:
     python benchmarks/bench_calibrate.py --sizes small            # the demo's size only
     python benchmarks/bench_calibrate.py --sizes parallel         # 91 parallel views, 134x160
     python benchmarks/bench_calibrate.py --sizes parallel --flat 0.69   # with issue #10's flat field (air at 0.69, tilted)
+    python benchmarks/bench_calibrate.py --sizes parallel --flat 0.69 --end-point   # over [0, 180 deg], both end views
     python benchmarks/bench_calibrate.py --standard               # small, medium, standard (long)
     python benchmarks/bench_calibrate.py --sizes standard --keep-data /tmp/pdvc_bench   # reuse the simulated scan
     python benchmarks/bench_calibrate.py --sizes medium --precession 0.5   # a precessing axis
@@ -141,11 +142,12 @@ def _problem(name: str):
 
 
 def _angles(name: str):
-    """The scan angles of a size: over [0, 180°) in parallel beam, a full turn in cone beam."""
+    """The scan angles of a size: over [0, 180°) in parallel beam ([0, 180°] with ``--end-point``), a full turn in
+    cone beam."""
     import numpy as np
 
     _, nv, _, sod, _, _ = SIZES[name]
-    return np.linspace(0, np.pi if sod is None else 2 * np.pi, nv, endpoint=False)
+    return np.linspace(0, np.pi if sod is None else 2 * np.pi, nv, endpoint=sod is None and _end_point())
 
 
 def _start_poses(name: str, start: str):
@@ -174,10 +176,16 @@ def _flat() -> float:
     return float(os.environ.get("PDVC_BENCH_FLAT", "1") or 1)
 
 
+def _end_point() -> bool:
+    """``--end-point``, handed to the child processes through the environment."""
+    return os.environ.get("PDVC_BENCH_END_POINT", "") == "1"
+
+
 def _data_path(data_dir: str, name: str) -> str:
     prec = f"_prec{_precession_deg():g}" if _precession_deg() else ""
     flat = f"_flat{_flat():g}" if _flat() != 1.0 else ""
-    return os.path.join(data_dir, f"bench_calibrate_{name}{prec}{flat}_seed{SEED}.npy")
+    closed = "_closed" if _end_point() and SIZES[name][3] is None else ""
+    return os.path.join(data_dir, f"bench_calibrate_{name}{prec}{flat}{closed}_seed{SEED}.npy")
 
 
 # --------------------------------------------------------------------------- simulation child
@@ -499,6 +507,9 @@ def main() -> int:
     ap.add_argument("--flat", type=float, default=1.0, metavar="T",
                     help="issue #10's flat field on the simulated scans: air at a transmission of T, 8%% tilted across "
                          "the columns, 1%% drift over the scan (bench_accuracy.py --flat; default 1: none)")
+    ap.add_argument("--end-point", action="store_true",
+                    help="parallel scans over [0, 180 deg], both end points included (issue #10's synchrotron list, 91 "
+                         "views every 2 deg), instead of [0, 180 deg)")
     ap.add_argument("--start", choices=("nominal", "tilt", "roll"), default="nominal",
                     help="start from the nominal geometry (default), or, as a diagnostic, from the true tilted axis "
                          "without the drift (tilt) or its tilt in the detector plane alone (roll)")
@@ -529,6 +540,8 @@ def main() -> int:
         ap.error("--flat must be a transmission in (0, 1]")
     if args.flat != 1.0:
         os.environ["PDVC_BENCH_FLAT"] = repr(float(args.flat))
+    if args.end_point:
+        os.environ["PDVC_BENCH_END_POINT"] = "1"
     env = dict(os.environ)
     env["NUMBA_NUM_THREADS"] = str(args.threads)
     env.setdefault("OMP_NUM_THREADS", "1")
