@@ -618,11 +618,12 @@ def compare_offsets(projections, geom: VectorGeometry, first: float, second: flo
     its mirrored opposite (the pairs within half an angular step of 180°) over the columns both hold, on one window of
     columns for both offsets, their mean squared difference with the axis at each; the paired difference over the
     pairs and bands of rows (:func:`estimate_axis_offset`'s, at most ``OVERLAP_BANDS`` per pair, each band of each
-    pair one sample: a 180° scan has only 2 or 3 pairs) and its standard error.
+    pair one sample: a 180° scan has only 3 pairs, or 6 with its end point) and its standard error.
 
     A 180° scan has no opposite view within half a step (without its end point) or one pair (with it): there the views
-    up to 2.5 steps from opposite are paired, as :func:`estimate_axis_offset` pairs them, each pair's mirror shifted by what the sample
-    turned between its views (``mismatch_slope``, the estimate's, times the pair's mismatch) for both offsets.
+    up to 2.5 steps from opposite are paired, as :func:`estimate_axis_offset` pairs them, each pair's mirror shifted
+    by what the sample turned between its views (``mismatch_slope``, the estimate's, times the pair's mismatch) for
+    both offsets.
 
     In parallel beam a view is its opposite's mirror image about the projected axis, whatever lies outside the
     field of view: a check of the axis that a region-of-interest scan's reconstruction cannot give. In cone beam
@@ -714,8 +715,9 @@ class _Reflection:
         pairs, delta, _ = _pairs(_scan_angles(geom))
         if delta is not None or pairs.shape[0] < 2:
             # views 1-2 steps from opposite differ by what the sample turned between them, which no reflection holds
+            n_opposite = _opposite_pairs(_scan_angles(geom), None)[0].shape[0]
             raise InitError("the axis's line needs two pairs of opposite views or more (each view with one within "
-                            f"half an angular step of 180 degrees), got {_opposite_pairs(_scan_angles(geom), None)[0].shape[0]}")
+                            f"half an angular step of 180 degrees), got {n_opposite}")
         keep = np.unique(np.linspace(0, pairs.shape[0] - 1, min(pairs.shape[0], ROLL_MAX_PAIRS)).round().astype(int))
         pairs = pairs[keep]
         rows = np.arange(nr)
@@ -878,9 +880,9 @@ def estimate_axis_roll(projections, geom: VectorGeometry, offset: AxisOffsetEsti
 PATTERN_MAX_PAIRS = 64
 PATTERN_MIN_SHARE = 0.01
 #: a 180-degree scan pairs only views up to 2.5 steps from opposite (three pairs without its end point, six with it,
-#: too few for a standard error): there the pattern is found where it accounts for this share at least (the 12 tuning half
-#: turns of ``--quick --roi 1.0 --half-turn``: at most 0.53 % clean, 7.8-51 % under issue #10's flat field;
-#: docs/method.md §5.44)
+#: too few for a standard error): there the pattern is found where it accounts for this share at least (the 12 tuning
+#: half turns of ``--quick --roi 1.0 --half-turn``: at most 0.53 % clean, 7.8-51 % under issue #10's flat field,
+#: docs/method.md §5.44; with ``--end-point``, at most 1.9 % clean, 6.3-84 % under the flat field, §5.45)
 PATTERN_MIN_SHARE_NEAR = 0.03
 
 
@@ -900,12 +902,11 @@ class DetectorPatternEstimate:
     share : float
         The fraction of the opposite views' mean squared difference (at their best offsets) the pattern accounts for.
     t : float
-        That reduction, pair by pair (pair and band of rows on a 180° scan), over its standard
-        error.
+        That reduction, pair by pair (pair and band of rows on a 180° scan), over its standard error.
     n_pairs : int
     mismatch_slope : float, pixels per radian
-        A 180° scan: the pairs' offsets' change with their mismatch, taken out of each pair's
-        shift (as :attr:`AxisOffsetEstimate.mismatch_slope`); 0 where the pairs are opposite.
+        A 180° scan: the pairs' offsets' change with their mismatch, taken out of each pair's shift (as
+        :attr:`AxisOffsetEstimate.mismatch_slope`); 0 where the pairs are opposite.
     near : bool
         The pairs are views near opposite (a 180° scan), not opposite.
     """
