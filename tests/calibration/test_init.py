@@ -80,7 +80,8 @@ def test_parallel_180_degree_scan(offset):
     assert isinstance(est, AxisOffsetEstimate)
     # the phantom's sharp edges make the interpolated peak uncertain to a few hundredths
     assert est.offset_px == pytest.approx(offset, abs=0.2)
-    # one pair opposite (0°, 180°) is too few for a spread: the views up to 2.5 steps from opposite, that pair with them
+    # one pair opposite (0°, 180°) is too few for a spread: the views up to 2.5 steps from opposite, that pair among
+    # them
     assert est.n_pairs == 6 and sorted(map(tuple, est.pairs.tolist())) == [(0, 178), (0, 179), (0, 180), (1, 179),
                                                                            (1, 180), (2, 180)]
     assert est.spread_px < 0.05
@@ -376,7 +377,8 @@ def test_compare_offsets_prefers_the_true_axis_and_says_by_how_much():
 
 
 # a half turn: without its end point no view has an opposite (three pairs 1-2 steps from it); with it (91 views over
-# [0°, 180°], issue #10's synchrotron list) one pair, too few for a spread: the same pairs and three more, that one among
+# [0°, 180°], issue #10's synchrotron list) one pair, too few for a spread: the same pairs and three more, that one
+# among them
 HALF_TURNS = pytest.mark.parametrize("angles, n_pairs", [(np.linspace(0, np.pi, 90, endpoint=False), 3),
                                                          (np.linspace(0, np.pi, 91), 6)], ids=["open", "closed"])
 
@@ -513,8 +515,9 @@ def test_a_pattern_on_a_half_turn(angles, n_pairs):
         clean = estimate_detector_pattern(p, geom)
         # the pairs (mismatches of 0, 1 and 2 steps), each band of each a sample; the line in proportion to the mismatch
         # (what the head turned between a pair's views) is shared by both fits: measured 1.2-1.7 % of the difference
-        # open; closed 4.4 % at +1.3 px, above PATTERN_MIN_SHARE_NEAR (the tuning half turns of bench_accuracy.py, closed:
-        # at most 1.9 % clean, 6.3 % and more under issue #10's flat field) but a tilt of 8e-5, 4 % of the pattern's
+        # open; closed 4.4 % at +1.3 px, above PATTERN_MIN_SHARE_NEAR (the tuning half turns of bench_accuracy.py,
+        # closed: at most 1.9 % clean, 6.3 % and more under issue #10's flat field) but a tilt of 8e-5, 4 % of the
+        # pattern's
         assert clean.near and clean.n_pairs == n_pairs and clean.mismatch_slope != 0.0
         assert abs(clean.slope) < 2e-4 and (not clean.found or n_pairs == 6)
         est = estimate_detector_pattern(p + pattern, geom)
