@@ -357,10 +357,11 @@ def _zinger_line(p, vol_geom, geom, volume) -> str:
 def _axis_line(p, g) -> str:
     """The coarse axis without a reconstruction: the opposite views' offset and, in parallel beam, the row sums' tilt."""
     from .calibration import InitError, estimate_axis_offset, estimate_axis_tilt
+    from .calibration._init import pairs_phrase
 
     try:
         est = estimate_axis_offset(p, g)
-        offset, text = est.offset_px, f"offset {est.offset_px:+.2f} px from {est.n_pairs} opposite view pairs"
+        offset, text = est.offset_px, f"offset {est.offset_px:+.2f} px from {pairs_phrase(g, est.n_pairs)}"
     except InitError as exc:
         offset, text = 0.0, f"offset not measured ({exc})"
     if g.kind == "parallel":

@@ -192,6 +192,7 @@ def test_inspect_says_whether_roi_auto_compensates(tmp_path):
     assert "region-of-interest scan" in wide and "roi = 'auto' compensates the scan" in wide
     assert "roi = 'auto' needs 90%" in narrow and "leaves it alone" in narrow
     assert "pattern fixed on the detector: none found" in wide  # a half turn: views near opposite
+    assert "px from 3 pairs of views near opposite" in wide and "opposite view pairs" not in wide
 
 
 def test_inspect_says_what_pattern_fixed_on_the_detector_a_full_turn_shows(tmp_path):
@@ -204,6 +205,7 @@ def test_inspect_says_what_pattern_fixed_on_the_detector_a_full_turn_shows(tmp_p
     np.save(tmp_path / "p.npy", p)
     clean = "\n".join(inspect_scan(tmp_path / "scan.toml")[0])
     assert "pattern fixed on the detector: none found" in clean
+    assert "px from 45 opposite view pairs" in clean and "near opposite" not in clean
     np.save(tmp_path / "p.npy", p + np.float32(0.08) * np.linspace(-0.5, 0.5, p.shape[2], dtype=np.float32))
     ramp = "\n".join(inspect_scan(tmp_path / "scan.toml")[0])
     assert "pattern fixed on the detector (a flat field that varies across the columns?): a tilt of +0.0018" in ramp

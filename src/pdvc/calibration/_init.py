@@ -215,6 +215,14 @@ def _pairs(theta: np.ndarray, max_mismatch: float | None = None) -> tuple[np.nda
     return pairs, None, step
 
 
+def pairs_phrase(geom: VectorGeometry, n_pairs: int) -> str:
+    """How the log and ``pdvc inspect`` name the ``n_pairs`` pairs an estimate from opposite views used: opposite, or
+    (fewer than two opposite on the scan: a 180° scan) near opposite."""
+    near = _pairs(_scan_angles(geom))[1] is not None
+    return (f"{n_pairs} pairs of views near opposite (up to 2.5 steps from 180°)" if near
+            else f"{n_pairs} opposite view pairs")
+
+
 def _mirrored(projections, i: int, j: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """View ``i``'s rows and view ``j``'s mirrored (float64)."""
     return (np.asarray(projections[i], np.float64)[rows], np.asarray(projections[j], np.float64)[rows][:, ::-1])

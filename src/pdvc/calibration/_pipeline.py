@@ -855,7 +855,7 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
         return initial_poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale), [], (0, 0), None
     if init == "none":
         return None, [], (0, 0), None
-    from ._init import estimate_axis_offset, offset_poses
+    from ._init import estimate_axis_offset, offset_poses, pairs_phrase
 
     emit(dict(event="init"))
     t0 = time.perf_counter()
@@ -869,7 +869,7 @@ def _start(p, geom, vol_geom, init, initial_poses, resume, fix_scale, emit, timi
             return None, [], (0, 0), None
     finally:
         timings["init"] = time.perf_counter() - t0
-    log.info("coarse initialisation: axis offset %.2f px from %d opposite view pairs", est.offset_px, est.n_pairs)
+    log.info("coarse initialisation: axis offset %.2f px from %s", est.offset_px, pairs_phrase(geom, est.n_pairs))
     return offset_poses(geom, float(est.offset_px)), [], (0, 0), float(est.offset_px)
 
 
