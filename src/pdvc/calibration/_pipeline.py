@@ -1295,7 +1295,8 @@ def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
     """A region-of-interest scan: a pattern fixed on the detector that its opposite views (or, on a 180-degree scan, its
     views near opposite) see mirrored (a flat field tilted across the columns, which such a scan has no air to
     measure), fitted with the axis offset (:func:`estimate_detector_pattern`) and, where found, its part antisymmetric
-    about the axis subtracted from every view (a copy) and the nominal volume reconstructed again. Returns ``(p, vol_initial, text)``; ``text`` is empty where the scan has no such views to compare."""
+    about the axis subtracted from every view (a copy) and the nominal volume reconstructed again. Returns ``(p,
+    vol_initial, text)``; ``text`` is empty where the scan has no such views to compare."""
     from ._init import estimate_detector_pattern
 
     t0 = time.perf_counter()
