@@ -442,6 +442,9 @@ def _pattern_line(p, g) -> str:
     except InitError as exc:
         return f"pattern fixed on the detector: not looked for ({exc})"
     figures = est.describe()
+    if est.undecided:
+        return (f"pattern fixed on the detector: cannot be told from the axis offset ({figures}); without a full turn "
+                f"calibrate does not confirm the axis (status undetermined)")
     if est.found:
         return (f"pattern fixed on the detector (a flat field that varies across the columns?): {figures}; calibrate "
                 f"subtracts it (air = 'auto')")

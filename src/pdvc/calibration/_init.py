@@ -892,6 +892,18 @@ PATTERN_MIN_SHARE = 0.01
 #: half turns of ``--quick --roi 1.0 --half-turn``: at most 0.53 % clean, 7.8-51 % under issue #10's flat field,
 #: docs/method.md §5.44; with ``--end-point``, at most 1.9 % clean, 6.3-84 % under the flat field, §5.45)
 PATTERN_MIN_SHARE_NEAR = 0.03
+#: the axis fitted with the line cannot be told from the line (a rod's dome shifted is nearly a line across the field)
+#: where it is not held within a pixel by ``MIRROR_MIN_T`` standard errors and lies this many pixels or more from the
+#: offset without the line: on the cone-beam short scans of ``bench_accuracy.py --quick --short-scan --roi 1.0``, five
+#: rods and a granular scan at i0 = 2e3 put it 4.5-15.6 px away (held 0.3-1.6 standard errors within a pixel), where
+#: issue #10's flat field pulls the offset without the line 0.6-2.6 px on rods (short scans and half turns,
+#: docs/method.md §5.46)
+PATTERN_CONFOUNDED_PX = 4.0
+#: where no pattern is found but the offsets with and without the line (the first not held within a pixel) lie this
+#: many pixels apart or more, the axis is not decided either: issue #10's flat field pulls the offset without the line
+#: 1.9-2.6 px on the tuning rods (short scans and half turns), while without a pattern the two lie at most 0.52 px
+#: apart on the tuning scans (docs/method.md §5.46)
+PATTERN_UNDECIDED_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -917,6 +929,9 @@ class DetectorPatternEstimate:
         :attr:`AxisOffsetEstimate.mismatch_slope`); 0 where the pairs are opposite.
     near : bool
         The pairs are views near opposite (a 180° scan), not opposite.
+    offset_t : float
+        How firmly the fit with the line holds its offset: its mean squared difference at the offset one pixel either
+        side, less at the offset, over its standard error (the smaller side).
     """
 
     offset_px: float
@@ -927,20 +942,47 @@ class DetectorPatternEstimate:
     n_pairs: int
     mismatch_slope: float = 0.0
     near: bool = False
+    offset_t: float = np.inf
+
+    @property
+    def confounded(self) -> bool:
+        """The axis cannot be told from the pattern: the offset fitted with the line is not held within a pixel by
+        ``MIRROR_MIN_T`` standard errors and lies ``PATTERN_CONFOUNDED_PX`` or more from the offset without it (a rod
+        much wider than the field, its views nearly a dome, at low dose). Where nothing else measures the pattern (air,
+        a full turn's mean), the offset without the line is then not confirmed either: it is where the pattern, if
+        there is one, looks symmetric."""
+        return self.offset_t < MIRROR_MIN_T and abs(self.offset_px - self.plain_offset_px) >= PATTERN_CONFOUNDED_PX
+
+    @property
+    def undecided(self) -> bool:
+        """Whether the axis depends on a pattern that the opposite views cannot decide on: :attr:`confounded`, or no
+        pattern :attr:`found` while the offset with the line, not held within a pixel by ``MIRROR_MIN_T`` standard
+        errors, lies ``PATTERN_UNDECIDED_PX`` or more from the offset without it."""
+        if self.confounded:
+            return True
+        return (not self.found and self.offset_t < MIRROR_MIN_T
+                and abs(self.offset_px - self.plain_offset_px) >= PATTERN_UNDECIDED_PX)
 
     @property
     def found(self) -> bool:
         """The pattern accounts for ``PATTERN_MIN_SHARE`` of the difference at least, by ``MIRROR_MIN_T`` standard
-        errors; for pairs of views near opposite (a 180° scan) ``PATTERN_MIN_SHARE_NEAR``."""
+        errors; for pairs of views near opposite (a 180° scan) ``PATTERN_MIN_SHARE_NEAR``; never where it is
+        :attr:`confounded` with the axis."""
+        if self.confounded:
+            return False
         if self.near:
             return self.share >= PATTERN_MIN_SHARE_NEAR
         return self.share >= PATTERN_MIN_SHARE and self.t > MIRROR_MIN_T
 
     def describe(self) -> str:
         """The estimate in words (the log, ``pdvc inspect`` and the report)."""
-        return (f"a tilt of {self.slope:+.3g} per column antisymmetric about the axis, {100 * self.share:.1f}% of the "
+        text = (f"a tilt of {self.slope:+.3g} per column antisymmetric about the axis, {100 * self.share:.1f}% of the "
                 f"opposite views' mean squared difference ({self.t:.1f} standard errors), axis offset "
                 f"{self.offset_px:+.2f} px with it, {self.plain_offset_px:+.2f} px without")
+        if self.undecided:
+            text += (f"; the axis with it not held within a pixel ({self.offset_t:.1f} standard errors): the axis "
+                     f"cannot be told from such a pattern")
+        return text
 
     def pattern(self, det_shape) -> np.ndarray:
         """The pattern on a detector of ``det_shape`` (rows, columns), float32: ``slope`` times the column's distance
@@ -999,6 +1041,25 @@ def _common_shift(a: np.ndarray, b: np.ndarray, delta: np.ndarray, *, slope: boo
     j = int(np.argmin(msd))
     s = float(grid[j] + _vertex(-msd, j) / upsample)
     return (s, *residual(s))
+
+
+def _offset_held(a: np.ndarray, b: np.ndarray, delta: np.ndarray, s: float, samples) -> float:
+    """How firmly :func:`_common_shift` with the common slope holds its shift ``s``: the mean squared difference (less
+    the shared lines) at ``s`` and two columns (a pixel of offset) either side, over one window, each sample's
+    increase over its standard error; the smaller side. ``samples`` makes the samples of a ``(pairs, bands, window)``
+    residual."""
+    from scipy import ndimage
+
+    lo, hi = _window(np.array([s - 2.0, s + 2.0]), a.shape[2])
+    if hi - lo < 2:
+        return 0.0
+
+    def q(x):
+        r = b[:, :, lo:hi] - ndimage.shift(a, (0.0, 0.0, -x), order=3, mode="nearest")[:, :, lo:hi]
+        return samples(r - _shared_lines(r, delta, True)[0])
+
+    at = q(s)
+    return min(_t(q(s - 2.0) - at), _t(q(s + 2.0) - at))
 
 
 def estimate_detector_pattern(projections, geom: VectorGeometry, *, rows=None, upsample: int = 10,
@@ -1067,14 +1128,19 @@ def estimate_detector_pattern(projections, geom: VectorGeometry, *, rows=None, u
         raise InitError(f"no estimate: the best whole shift of the opposite views lies at the search limit |offset| = "
                         f"{lim:g} px (raise max_offset, or the opposite views do not overlap)")
     # the samples of the paired reduction: the pairs, or where there are only a few near opposite, pairs and bands
-    plain, fitted = (np.mean(r ** 2, axis=2).ravel() if near else np.mean(r ** 2, axis=(1, 2)) for r in (r0, r1))
+    def samples(r):
+        return np.mean(r ** 2, axis=2).ravel() if near else np.mean(r ** 2, axis=(1, 2))
+
+    plain, fitted = samples(r0), samples(r1)
     slope = -0.5 * common  # the difference holds f(2c - j) - f(j): minus twice the antisymmetric part
     share = float(1.0 - np.mean(fitted) / np.mean(plain)) if np.mean(plain) > 0 else 0.0
     est = DetectorPatternEstimate(offset_px=0.5 * s1, slope=slope, plain_offset_px=0.5 * s0, share=share,
-                                  t=_t(plain - fitted), n_pairs=int(pairs.shape[0]), mismatch_slope=slope_m, near=near)
+                                  t=_t(plain - fitted), n_pairs=int(pairs.shape[0]), mismatch_slope=slope_m, near=near,
+                                  offset_t=_offset_held(a, b, delta, s1, samples))
     log.info("detector pattern from %d pairs of opposite views: tilt %+.3g per column antisymmetric about the axis, "
-             "%.1f%% of their mean squared difference (%.1f standard errors); axis offset %+.3f px with it, %+.3f px "
-             "without", est.n_pairs, slope, 100 * share, est.t, est.offset_px, est.plain_offset_px)
+             "%.1f%% of their mean squared difference (%.1f standard errors); axis offset %+.3f px with it (held within "
+             "a pixel by %.1f standard errors), %+.3f px without", est.n_pairs, slope, 100 * share, est.t,
+             est.offset_px, est.offset_t, est.plain_offset_px)
     return est
 
 

@@ -491,11 +491,12 @@ def calibrate(
     weights, trunc = _truncation(truncation, weights, None if air == "auto" else p, geom, vol_geom, vol_initial)
     p_out = None  # the data the output volumes are made from, when the stages calibrate on a corrected copy
     lateral = roi == "on" or (trunc is not None and trunc.lateral)
-    pattern_text = ""
+    pattern_text, pattern = "", None
     if lateral and air == "auto":  # before anything compares opposite views or fits the motion
-        p, vol_initial, pattern_text = _roi_pattern(p, geom, vol_geom, vol_initial, timings)
-    mirror_start = None  # a region-of-interest scan's axis offset that its opposite views confirm (the fallback)
-    if lateral and offset_px is not None and not resume:
+        p, vol_initial, pattern_text, pattern = _roi_pattern(p, geom, vol_geom, vol_initial, timings)
+    # a region-of-interest scan's axis offset that its opposite views confirm (the fallback), or why none can be
+    mirror_start = _undecided(pattern, geom, offset_px) if lateral else None
+    if lateral and offset_px is not None and not resume and mirror_start is None:
         poses, offset_px, mirror_start = _roi_start(p, geom, poses, offset_px, timings)
     fixed_pattern = mirror_start if isinstance(mirror_start, str) else ""  # the views less their mean vetoed the offset
     mirror_start = None if fixed_pattern else mirror_start
@@ -1218,6 +1219,26 @@ def _covers_field(geom, vol_geom) -> bool:
 MIRROR_MIN_EXTRAPOLATIONS = 2.0
 
 
+def _undecided(est, geom, offset_px) -> str | None:
+    """Why the axis of a region-of-interest scan without a full turn cannot be confirmed, where a pattern fixed on the
+    detector and the axis cannot be told apart (:attr:`~pdvc.calibration.DetectorPatternEstimate.undecided`; ``est``
+    from :func:`_roi_pattern`, None where it made none); else None. Nothing measures such a pattern there (no air, no
+    full turn's mean as :func:`_fixed_pattern_check` has), and the opposite views' offset is where it, if there is one,
+    looks symmetric: the stages start where they would have without the scan being a region of interest and the final
+    check is to reject their geometry, as for the veto of :func:`_fixed_pattern_check` (docs/method.md §5.46)."""
+    if est is None or not est.undecided or _full_turn(geom):
+        return None
+    log.warning("roi: the opposite views' axis offset (%+.2f px) is not used: with a line common to every pair (a "
+                "pattern fixed on the detector) the axis goes to %+.2f px, not held within a pixel (%.1f standard "
+                "errors), and with no air in the field and no full turn nothing else measures such a pattern; the "
+                "stages start from %s", est.plain_offset_px, est.offset_px, est.offset_t,
+                "the nominal axis" if offset_px is None else f"the coarse initialisation's {offset_px:+.2f} px")
+    return (f"the opposite views put the axis at {est.plain_offset_px:+.2f} px, but with a line common to every pair "
+            f"(a pattern fixed on the detector, a flat field that varies across the columns?) at {est.offset_px:+.2f} "
+            f"px, not held within a pixel ({est.offset_t:.1f} standard errors): the axis cannot be told from such a "
+            f"pattern, and with no air in the field and no full turn nothing measures it")
+
+
 def _roi_start(p, geom, poses, offset_px: float, timings):
     """A region-of-interest scan (material at the rows' ends): the coarse axis offset measured again with the opposite
     views compared over the columns both hold (:func:`estimate_axis_offset` with ``overlap=True``); in parallel beam
@@ -1296,7 +1317,9 @@ def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
     views near opposite) see mirrored (a flat field tilted across the columns, which such a scan has no air to
     measure), fitted with the axis offset (:func:`estimate_detector_pattern`) and, where found, its part antisymmetric
     about the axis subtracted from every view (a copy) and the nominal volume reconstructed again. Returns ``(p,
-    vol_initial, text)``; ``text`` is empty where the scan has no such views to compare."""
+    vol_initial, text, est)``; ``text`` is empty and ``est`` (the :class:`~pdvc.calibration.DetectorPatternEstimate`)
+    None where the scan has no such views to compare. A pattern :attr:`~pdvc.calibration.DetectorPatternEstimate.
+    confounded` with the axis is not found (nor subtracted)."""
     from ._init import estimate_detector_pattern
 
     t0 = time.perf_counter()
@@ -1304,16 +1327,19 @@ def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
         est = estimate_detector_pattern(p, geom)
     except InitError as exc:
         log.info("roi: no pattern fixed on the detector looked for: %s", exc)
-        return p, vol_initial, ""
+        return p, vol_initial, "", None
     finally:
         timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
     figures = est.describe()
+    if est.confounded:
+        log.warning("roi: a pattern fixed on the detector cannot be told from the axis offset: %s", figures)
+        return p, vol_initial, f"not told from the axis (each view against its mirrored opposite: {figures})", est
     if not est.found:
-        return p, vol_initial, f"none found (each view against its mirrored opposite: {figures})"
+        return p, vol_initial, f"none found (each view against its mirrored opposite: {figures})", est
     log.warning("roi: a pattern fixed on the detector (a flat field that varies across the columns?), which the opposite "
                 "views see mirrored: %s; its part antisymmetric about the axis is subtracted from every view", figures)
     p = p - est.pattern(geom.det_shape)[None]
-    return p, reconstruct(p, vol_geom, geom), f"subtracted: {figures}"
+    return p, reconstruct(p, vol_geom, geom), f"subtracted: {figures}", est
 
 
 #: roi: the offset from opposite views smoothed along the columns is used where it is within this many pixels of the
@@ -1356,10 +1382,9 @@ def _fixed_pattern_check(p, geom, offset: float):
     profile is in the mean), so they are a veto only: an offset they reject by ``MIRROR_MIN_T`` standard errors is
     not used (rods of ``bench_accuracy.py --quick --roi 1.0 --parallel --flat 0.69``: started and returned 2.0-2.2 px
     from the truth, farther than nominal, docs/method.md §5.43)."""
-    from ._init import _pairs, _scan_angles, compare_offsets
+    from ._init import compare_offsets
 
-    pairs, delta, _ = _pairs(_scan_angles(geom))
-    if delta is not None or pairs.shape[0] < geom.n_views // 2 - 1:
+    if not _full_turn(geom):
         return None
     try:
         fixed = compare_offsets(_LessMean(p), geom, 0.0, offset)
@@ -1368,6 +1393,14 @@ def _fixed_pattern_check(p, geom, offset: float):
     log.info("roi: the views less their mean, each against its mirrored opposite: mean squared difference %.4g with the "
              "nominal axis, %.4g at %+.2f px (%.1f standard errors)", fixed.msd[0], fixed.msd[1], offset, fixed.t)
     return fixed
+
+
+def _full_turn(geom) -> bool:
+    """Whether every view (but one) has an opposite: a full turn, whose views' mean is symmetric about the axis."""
+    from ._init import _pairs, _scan_angles
+
+    pairs, delta, _ = _pairs(_scan_angles(geom))
+    return delta is None and pairs.shape[0] >= geom.n_views // 2 - 1
 
 
 class _LessMean:
