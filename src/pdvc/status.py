@@ -78,6 +78,7 @@ _MESSAGES = {
     Status.WORSE_THAN_NOMINAL: "failed: the calibrated geometry fits the data worse than the nominal one; "
     "the nominal geometry is returned",
     Status.MOTION_TOO_LARGE: "not converged: the motion may be too large for the linearisation",
-    Status.UNDETERMINED: "failed: the nominal geometry already fits the data to the noise, so the data cannot tell a "
-    "calibrated geometry from it; the nominal geometry is returned",
+    Status.UNDETERMINED: "failed: the data cannot tell a calibrated geometry from the nominal one (the nominal fit is "
+    "already at the noise, or something the model leaves out can pass for the motion); the nominal geometry is "
+    "returned",
 }
