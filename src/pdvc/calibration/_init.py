@@ -896,13 +896,13 @@ PATTERN_MIN_SHARE_NEAR = 0.03
 #: where it is not held within a pixel by ``MIRROR_MIN_T`` standard errors and lies this many pixels or more from the
 #: offset without the line: on the cone-beam short scans of ``bench_accuracy.py --quick --short-scan --roi 1.0``, five
 #: rods and a granular scan at i0 = 2e3 put it 4.5-15.6 px away (held 0.3-1.6 standard errors within a pixel), where
-#: issue #10's flat field pulls the offset without the line 0.6-2.6 px on rods (short scans and half turns,
+#: issue #10's flat field pulls the offset without the line 1.8-2.3 px on the tuning rods (short scans and half turns,
 #: docs/method.md §5.46)
 PATTERN_CONFOUNDED_PX = 4.0
 #: where no pattern is found but the offsets with and without the line (the first not held within a pixel) lie this
 #: many pixels apart or more, the axis is not decided either: issue #10's flat field pulls the offset without the line
-#: 1.9-2.6 px on the tuning rods (short scans and half turns), while without a pattern the two lie at most 0.52 px
-#: apart on the tuning scans (docs/method.md §5.46)
+#: 1.8-2.3 px on the tuning rods (short scans and half turns), while without a pattern the two lie at most 0.52 px
+#: apart on the tuning scans where the line does not run away (docs/method.md §5.46)
 PATTERN_UNDECIDED_PX = 1.0
 
 
