@@ -955,11 +955,9 @@ class DetectorPatternEstimate:
 
     @property
     def undecided(self) -> bool:
-        """Whether the axis depends on a pattern that the opposite views cannot decide on: :attr:`confounded`, or no
-        pattern :attr:`found` while the offset with the line, not held within a pixel by ``MIRROR_MIN_T`` standard
-        errors, lies ``PATTERN_UNDECIDED_PX`` or more from the offset without it."""
-        if self.confounded:
-            return True
+        """Whether the axis depends on a pattern that the opposite views cannot decide on: no pattern :attr:`found`
+        (a :attr:`confounded` one never is) while the offset with the line, not held within a pixel by ``MIRROR_MIN_T``
+        standard errors, lies ``PATTERN_UNDECIDED_PX`` or more from the offset without it."""
         return (not self.found and self.offset_t < MIRROR_MIN_T
                 and abs(self.offset_px - self.plain_offset_px) >= PATTERN_UNDECIDED_PX)
 

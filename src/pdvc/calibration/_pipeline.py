@@ -1318,8 +1318,8 @@ def _roi_pattern(p, geom, vol_geom, vol_initial, timings):
     measure), fitted with the axis offset (:func:`estimate_detector_pattern`) and, where found, its part antisymmetric
     about the axis subtracted from every view (a copy) and the nominal volume reconstructed again. Returns ``(p,
     vol_initial, text, est)``; ``text`` is empty and ``est`` (the :class:`~pdvc.calibration.DetectorPatternEstimate`)
-    None where the scan has no such views to compare. A pattern :attr:`~pdvc.calibration.DetectorPatternEstimate.
-    confounded` with the axis is not found (nor subtracted)."""
+    None where the scan has no such views to compare. A pattern confounded with the axis
+    (:attr:`~pdvc.calibration.DetectorPatternEstimate.confounded`) is not found, nor subtracted."""
     from ._init import estimate_detector_pattern
 
     t0 = time.perf_counter()
