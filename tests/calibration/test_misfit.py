@@ -39,6 +39,27 @@ def test_the_true_geometry_predicts_the_views_left_out_best(case):
     assert m2[0] < m2[1]  # measured 0.000129, 0.0629
 
 
+def test_each_set_of_views_measures_its_step_bound_once_for_all_the_geometries(case, monkeypatch):
+    # The step bound of a set's volumes depends on the grid and the set's geometry only: it is measured once per set,
+    # at the first geometry. The first geometry's misfit is then the same bit for bit as when it is compared alone;
+    # the others' within what the bound's change between geometries a fraction of a pixel apart makes
+    import pdvc.calibration._select as sel
+
+    g = case.scan.geometry
+    truth = g.apply_poses(*fix_gauge(case.scan.rotvecs, case.scan.translations, g, center=case.vol_geom.offset))
+    angles = np.linspace(0, 2 * np.pi, g.n_views, endpoint=False)
+    off = truth.apply_poses(*tilted_axis_poses(angles, tilt=np.deg2rad(0.3), offset=(0.3, 0.0, 0.0)))
+    p = case.scan.projections
+    calls = []
+    measured = sel.nonneg_ls_lipschitz
+    monkeypatch.setattr(sel, "nonneg_ls_lipschitz", lambda *a, **k: calls.append(1) or measured(*a, **k))
+    both = cross_validated_misfit(p, case.vol_geom, [truth, off])
+    assert len(calls) == 2  # two sets of views, two geometries
+    assert cross_validated_misfit(p, case.vol_geom, [truth])[0] == both[0]
+    assert cross_validated_misfit(p, case.vol_geom, [off])[0] == pytest.approx(both[1], rel=1e-4)
+    assert both[0] < both[1]
+
+
 def test_the_background_taken_out_of_each_view_is_its_weighted_least_squares_plane():
     # Known answer: a plane per view added to a residual is taken out exactly (what is left is the residual's own
     # part orthogonal to the planes, under the weights), and pixels of weight 0 do not count

@@ -412,7 +412,7 @@ def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log
     assert all(h["background"] == -1 for h in clean.history) and clean.history[0]["offset_sigma"] < 0.1
     assert clean.options["background"].startswith("none")
     p = c.scan.projections + np.linspace(0.0, 0.3, c.scan.geometry.n_views, dtype=np.float32)[:, None, None]
-    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+    with caplog.at_level("INFO", logger="pdvc.calibration"):
         auto = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, **kw)
     # decided at the first round, on the offset its poses left (that round is then measured again with it), and
     # kept at every later round and stage
@@ -421,11 +421,19 @@ def test_background_auto_fits_a_plane_only_when_the_air_level_drifts_and_the_log
     assert all(h["offset_sigma"] < 1e-6 for h in auto.history[1:])
     assert auto.options["background"].startswith("a plane per view")
     assert "background = 0" not in caplog.text
+
+    def final_diagnosis():
+        lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("calibrated geometry: ")]
+        assert len(lines) == 1
+        return lines[0]
+
+    # the residual's diagnosis is of the data against the volume: the log says the fitted background is still in it
+    assert final_diagnosis().endswith("(before the background per view fitted with the motion)")
     caplog.clear()
-    with caplog.at_level("WARNING", logger="pdvc.calibration"):
+    with caplog.at_level("INFO", logger="pdvc.calibration"):
         off = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, background=-1, **kw)
     assert all(h["background"] == -1 for h in off.history)
-    assert "background = 0" in caplog.text
+    assert "background = 0" in caplog.text and "before the background" not in final_diagnosis()
     # the default: the air level the views share is subtracted before the rounds; its drift is left to the background
     default = pdvc.calibrate(p, c.scan.geometry, c.vol_geom, max_outer=2, fixed=("rx", "ry", "rz"))
     assert default.options["air"].startswith("subtracted") and all(h["background"] == 1 for h in default.history)

@@ -1619,8 +1619,12 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     # per-view offset, structure) is not a defect of the data
     last = with_model(stages[-1], drv.model_choice)  # the model the last stage ran
     other = _stage_fit_text(last, drv.history)
-    (log.warning if d1.chi > 2.0 and not other else log.info)("calibrated geometry: %s%s", d1.describe(), other)
-    if d1.chi > 1.5 and d1.view_offset >= 0.3 and not other and not any(h.get("background", -1) >= 0 for h in drv.history):
+    fitted = any(h.get("background", -1) >= 0 for h in drv.history)
+    # the diagnosis is of the data against the volume: a background the correlation fitted with the motion is still in
+    # it (as the report says)
+    before = " (before the background per view fitted with the motion)" if fitted else ""
+    (log.warning if d1.chi > 2.0 and not other else log.info)("calibrated geometry: %s%s%s", d1.describe(), before, other)
+    if d1.chi > 1.5 and d1.view_offset >= 0.3 and not other and not fitted:
         log.warning("a constant per view holds %.0f%% of the residual: [calibration] background = 0 (1: with a ramp "
                     "across the detector) fits a smooth background per view with the motion (docs/method.md)",
                     100 * d1.view_offset)

@@ -30,7 +30,7 @@ from ..correlation._frames import lab_to_sample_map, params_to_lab, params_to_sa
 from ..errors import InputTypeError, ShapeError
 from ..geometry import Poses, VectorGeometry, VolumeGeometry, sample_points
 from ..projectors import forward
-from ..recon import nonneg_ls, refined_grid
+from ..recon import nonneg_ls, nonneg_ls_lipschitz, refined_grid
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -55,6 +55,10 @@ OWN_MODEL_GAIN = 0.004
 _BLOCKS = 16
 # the fewest views a half may hold for a comparison
 _MIN_HALF = 8
+#: Each half's fit stops at a Gauss-Newton step below this (px on the detector): the scores compare predictions of the
+#: other half, which the last thousandths of a pixel do not change (the calibration's rounds iterate to 0.001 px; the
+#: choice's four fits spent 2-3 of their 6-8 passes below 0.01 px on the demo's scan; docs/method.md §5.47)
+MODEL_FIT_TOL_PX = 0.01
 
 
 def model_fields(name: str) -> dict:
@@ -198,7 +202,7 @@ def compare_models(
     volume, vol_geom, projections, geom, poses: Poses, own: dict, candidates: dict, *, noise_variance: float,
     weights=None, angles, times=None, center, background: Optional[int] = None, backend: str = "auto",
     max_iter: int = 6, min_gain: float = MIN_MODEL_GAIN, own_gain: float = OWN_MODEL_GAIN, own_name: str = "own",
-    skip_simpler: str = "",
+    skip_simpler: str = "", tol_px: float = MODEL_FIT_TOL_PX,
 ) -> ModelChoice:
     """Score the models on views they were not fitted to; return the winner.
 
@@ -218,6 +222,9 @@ def compare_models(
     skip_simpler : str
         Non-empty: the reason why candidates simpler than the own model are
         not compared (the choice's ``note`` says it).
+    tol_px : float
+        Each fit's Gauss-Newton iterations stop at a step below this
+        (detector pixels; ``MODEL_FIT_TOL_PX``).
     """
     n = geom.n_views
     angles = np.asarray(angles, float)
@@ -265,7 +272,8 @@ def compare_models(
                 volume, vol_geom, projections[fit], g_fit, basis=S[fit], frame=m["frame"], fixed=m["fixed"], center=c,
                 weights=_subset(weights, fit), noise_variance=noise_variance, angles=angles[fit],
                 times=None if t_all is None else t_all[fit], initial_rotvecs=p0_fit.rotvecs,
-                initial_translations=p0_fit.translations, max_iter=max_iter, backend=backend, background=background,
+                initial_translations=p0_fit.translations, max_iter=max_iter, tol_px=tol_px, backend=backend,
+                background=background,
             )
             passes += int(res.n_iter)
             # the increment the fit added to the stage's poses, on the basis; then evaluated at the views left out
@@ -384,13 +392,19 @@ def cross_validated_misfit(projections, vol_geom: VolumeGeometry, geometries, *,
     fine = refined_grid(vg, k)
     idx = np.arange(shape[0])
     out = np.empty(len(geoms))
+    # the step bound of each set's volumes depends on the grid and the views' geometry only: measured once per set (3
+    # power iterations, a projection and a back-projection each), at the first geometry, for all of them; the geometries
+    # compared differ by fractions of a pixel, and their volumes then take the same steps (docs/method.md §5.47)
+    lips = {}
     for i, g in enumerate(geoms):
         g_s = g.binned(s) if s > 1 else g
         rss = energy = 0.0
         for r in range(n_sets):
             fit, test = idx[idx % n_sets != r], idx[idx % n_sets == r]
+            if r not in lips:
+                lips[r] = nonneg_ls_lipschitz(fine, g_s[fit], coarsen=k, backend=backend)
             vol = nonneg_ls(p_s[fit], fine, g_s[fit], coarsen=k, n_iter=n_iter, weights=None if w is None else w[fit],
-                            subsets=n_sub, backend=backend)
+                            subsets=n_sub, lipschitz=lips[r], backend=backend)
             d = (forward(vol, fine, g_s[test], backend=backend) - p_s[test]).astype(np.float64)
             wt = 1.0 if w is None else w[test]
             if background is not None:
