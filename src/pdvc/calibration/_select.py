@@ -35,7 +35,7 @@ from ..recon import nonneg_ls, nonneg_ls_lipschitz, refined_grid
 log = logging.getLogger("pdvc.calibration")
 
 __all__ = ["MODELS", "MIN_MODEL_GAIN", "OWN_MODEL_GAIN", "ModelChoice", "compare_models", "cross_validated_misfit",
-           "pick_model", "model_fields", "model_name", "with_model"]
+           "pick_model", "richer_than_simpler", "model_fields", "model_name", "with_model"]
 
 #: Named motion models a stage can list as candidates: (basis, frame, fixed).
 MODELS = {
@@ -164,6 +164,18 @@ class ModelChoice:
         if not simpler:
             return f"{self.own} kept: no candidate predicts the views it was not fitted to more than {100 * self.min_gain:.2g} % " \
                    f"better (cross-validated chi^2: {parts}){self._blind_spot()}"
+        own_beats = [k for k in simpler if self.scores[self.own] < self.scores[k] * (1.0 - self.own_gain)]
+        if not own_beats:
+            # the own model alone did not beat the simpler ones by own_gain: a richer candidate did (pick_model)
+            seen = []
+            for k in simpler:
+                for r in richer_than_simpler(self.scores, self.sizes, k, self.own_gain):
+                    seen.append(f"{r} {100 * (1.0 - self.scores[r] / self.scores[k]):.2g} % better than {k}")
+            seen = "; ".join(seen)
+            return f"{self.own} kept: a richer model predicts the views it was not fitted to better than the simpler " \
+                   f"one by more than {100 * self.own_gain:.2g} % ({seen}: a motion beyond it), and no richer candidate " \
+                   f"more than {100 * self.min_gain:.2g} % better than {self.own} (cross-validated chi^2: {parts})" \
+                   f"{self._blind_spot()}"
         beats = " and ".join(f"{100 * (1.0 - self.scores[self.own] / self.scores[k]):.2g} % better than {k}" for k in simpler)
         return f"{self.own} kept: it predicts the views it was not fitted to {beats} (more than {100 * self.own_gain:.2g} %), " \
                f"and no richer candidate more than {100 * self.min_gain:.2g} % better than it (cross-validated chi^2: {parts})" \
@@ -189,13 +201,30 @@ def _subset(x, idx):
 def pick_model(scores: dict, sizes: dict, own: str, *, min_gain: float = MIN_MODEL_GAIN, own_gain: float = OWN_MODEL_GAIN) -> str:
     """The model kept from cross-validated ``scores``: from the simplest (smallest ``sizes``, the ``own`` model first
     among equals) up, a richer model replaces the one chosen so far when it scores lower by more than ``min_gain``
-    (``own_gain`` for the own model) of that one's score."""
+    (``own_gain`` for the own model) of that one's score.
+
+    A model simpler than the own one is kept only where no richer model scores lower than it by more than
+    ``own_gain``: where one does (a precession that neither the own model nor the precession model holds clearly
+    enough to be chosen, but that both see), the simpler models are left out and the choice is made from the own
+    model up (:func:`richer_than_simpler`; ``docs/method.md`` §5.48)."""
     order = sorted(scores, key=lambda k: (sizes[k], k != own))
-    winner = order[0]
-    for k in order[1:]:
-        if scores[k] < scores[winner] * (1.0 - (own_gain if k == own else min_gain)):
-            winner = k
+
+    def climb(models):
+        winner = models[0]
+        for k in models[1:]:
+            if scores[k] < scores[winner] * (1.0 - (own_gain if k == own else min_gain)):
+                winner = k
+        return winner
+
+    winner = climb(order)
+    if own in sizes and sizes[winner] < sizes[own] and richer_than_simpler(scores, sizes, winner, own_gain):
+        winner = climb([k for k in order if sizes[k] >= sizes[own]])
     return winner
+
+
+def richer_than_simpler(scores: dict, sizes: dict, simple: str, own_gain: float = OWN_MODEL_GAIN) -> list:
+    """The models richer than ``simple`` whose cross-validated score is lower than its by more than ``own_gain``."""
+    return [k for k in scores if sizes[k] > sizes[simple] and scores[k] < scores[simple] * (1.0 - own_gain)]
 
 
 def compare_models(

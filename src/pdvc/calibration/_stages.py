@@ -156,7 +156,9 @@ class Stage:
         simplest up, a richer model is kept only when it predicts them
         better than the simpler one by more than ``MIN_MODEL_GAIN`` (the
         stage's own model: ``OWN_MODEL_GAIN``; on a short scan simpler
-        candidates are not compared); the winner replaces the stage's model,
+        candidates are not compared), and a model simpler than the stage's
+        own only where no richer one predicts better than it by more than
+        ``OWN_MODEL_GAIN`` (:func:`pick_model`); the winner replaces the stage's model,
         and every later stage that lists candidates takes it. Once per run,
         at the first such stage. Empty (default for a stage): no choice.
     robust : float or None
@@ -368,8 +370,10 @@ def capped_oversample(vol_shape, scale: int, oversample: int) -> int:
 # diverge_tol of the model stage at the scales after the first (the finest scales refine)
 FINER_SCALE_DIVERGE_TOL = 0.0
 
-# the models the default recipe compares with its own (docs/method.md §5.12)
-DEFAULT_CANDIDATES = ("precession",)
+# the models the default recipe compares with its own (docs/method.md §5.12): the fixed axis of beamline tools (since
+# session 50: a scan whose axis is only offset and tilted no longer gets the small wobble and drift the axis model
+# invents, §5.48) and the precession model
+DEFAULT_CANDIDATES = ("fixed_axis", "precession")
 
 # the model stage of each recipe, before the user's overrides
 _RECIPE_MODEL = {

@@ -116,9 +116,9 @@ that type needs) are required; everything else has the default shown.
     # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper)
     # background = "auto"       # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane,
                                 # 2 quadratic; "auto": a plane when the residual's per-view offset is well above the noise
-    # candidates = ["precession"]  # default recipe: motion models compared with its own ("axis") on views they were
-                                # not fitted to, before the model stage; [] = none (also when basis/frame/fixed are
-                                # set); "fixed_axis" adds the simpler model of an offset, tilted axis (full turns)
+    # candidates = ["fixed_axis", "precession"]  # default recipe: motion models compared with its own ("axis") on
+                                # views they were not fitted to, before the model stage; [] = none (also when
+                                # basis/frame/fixed are set); "fixed_axis": an offset, tilted axis (full turns only)
     scales = "auto"             # coarse-graining scales, strictly decreasing, e.g. [4, 2]; "auto": from the detector
                                 # (without the finest scales a parallel full turn of few views undersamples)
     warmup = 1                  # translation-only rounds before a model with free rotations, at the first scale
