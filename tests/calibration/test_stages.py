@@ -99,6 +99,25 @@ def test_default_recipe_is_a_warmup_then_the_model_at_each_scale_the_warmup_at_t
     assert len(recipe_stages("default", (76, 89), jolts=False)) == 2
 
 
+def test_the_default_first_scale_stops_at_its_first_worse_reconstruction_on_full_turns_only():
+    # strict_first_scale: the first scale's model stage gets the finer scales' diverge_tol, a user's diverge_tol wins
+    big = recipe_stages("default", (1024, 1024), strict_first_scale=True)
+    assert [s.diverge_tol for s in big if s.name == "model"] == [0.0, 0.0]
+    assert all(s.diverge_tol == 0.01 for s in recipe_stages("default", (1024, 1024), diverge_tol=0.01,
+                                                             strict_first_scale=True) if s.name == "model")
+    # resolve_stages (what pdvc.calibrate runs) sets it for the default recipe on a full turn, where the precession
+    # recipe's second run follows, and not on a half turn (none follows), nor without the geometry, nor for the
+    # precession recipe
+    tol = lambda **kw: [s.diverge_tol for s in resolve_stages((76, 89), **kw) if s.name == "model"]  # noqa: E731
+    full = pdvc.circular_cone(np.linspace(0, 2 * np.pi, 90, endpoint=False), sod=200.0, odd=100.0, det_shape=(76, 89),
+                              pixel=1.5)
+    half = pdvc.parallel(np.linspace(0, np.pi, 90, endpoint=False), det_shape=(76, 89), pixel=1.0)
+    assert tol(geom=full) == [0.0]
+    assert tol(geom=half) == tol() == [Stage().diverge_tol]
+    assert tol(geom=full, recipe="precession") == [Stage().diverge_tol]
+    assert tol(geom=full, diverge_tol=0.02) == [0.02]
+
+
 def test_the_refinement_is_an_option_of_the_default_recipe_with_its_own_model_and_volume():
     # refine = True: the precession model on nonneg_ls volumes at the coarsest scale, after the smooth model, at
     # most its rounds, stopping when they stop contracting; the jolts are still looked for at the finest scale on

@@ -364,7 +364,7 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
     """The volume a stage correlates against, on ``refined_grid(vol_geom, stage.oversample)``.
 
     ``vol_geom`` is the stage's grid. FDK/FBP and ``nonneg_ls`` with
-    ``oversample_by="spline"`` reconstruct on it and interpolate by cubic
+    ``oversample_by="spline"`` (``"auto"`` in parallel beam) reconstruct on it and interpolate by cubic
     B-splines; otherwise the stage's reconstruction runs on the fine grid. ``weights`` (the
     stage's detector weights) weigh the rays of the ``nonneg_ls`` fit (a ray
     that leaves the volume through a face the sample crosses does not pull
@@ -376,14 +376,15 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
     k = stage.oversample
     r = stage.reconstruct
     fine = refined_grid(vol_geom, k)
+    spline = stage.oversample_by == "spline" or (stage.oversample_by == "auto" and geom.kind == "parallel")
     if callable(r):
         return r(projections, fine, geom)
     if r == "fdk":
-        if k > 1 and stage.oversample_by == "spline":
+        if k > 1 and spline:
             return spline_upsample(reconstruct(projections, vol_geom, geom), k)
         return reconstruct(projections, fine, geom)
     if r == "nonneg_ls":
-        grid, coarsen = (vol_geom, 1) if k > 1 and stage.oversample_by == "spline" else (fine, k)
+        grid, coarsen = (vol_geom, 1) if k > 1 and spline else (fine, k)
         lip = None
         if lipschitz is not None:
             key = (tuple(grid.shape), tuple(grid.voxel_size), coarsen, geom.kind, geom.n_views, tuple(geom.det_shape),

@@ -158,11 +158,16 @@ def _snr_of(p, res, weights) -> np.ndarray:
 
 
 def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, scales="auto", max_outer=None, warmup=1,
-                   geom: Optional[VectorGeometry] = None, notes: Optional[list] = None, **model) -> tuple:
+                   geom: Optional[VectorGeometry] = None, notes: Optional[list] = None, region_of_interest: bool = False,
+                   **model) -> tuple:
     """The stage list a calibration runs: ``stages`` as given, or the recipe's with the model overrides.
 
     With ``geom`` and automatic ``scales``, a parallel-beam scan leaves out the finest scales its views' distinct
-    directions undersample (:func:`_direction_limited_scales`); why goes to ``notes`` (a list), or to the log.
+    directions undersample (:func:`_direction_limited_scales`); why goes to ``notes`` (a list), or to the log. With
+    ``geom``, the default recipe on a full turn stops its first scale at the first worse reconstruction
+    (``strict_first_scale``), and a parallel-beam scan's FDK/FBP stages get ``oversample_by = "auto"`` unless it is
+    given (:func:`_spline_oversampled`); neither with ``region_of_interest`` (a scan that ``calibrate`` found
+    truncated laterally: no second run follows, and material lies outside the volume; ``docs/method.md`` §5.50).
     """
     try:
         if stages is not None:
@@ -173,13 +178,20 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
             if not out or not all(isinstance(s, Stage) for s in out):
                 raise CalibrationError("stages must be a non-empty sequence of pdvc.calibration.Stage")
             return out
-        out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=scales, max_outer=max_outer, warmup=warmup, **model)
+        # on a full turn the default's first scale stops at its first worse reconstruction, as the finer ones do: the
+        # precession recipe's second run follows there, and the rounds past the best one only crept (§5.50)
+        strict = (recipe == "default" and geom is not None and not region_of_interest
+                  and opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION)
+        out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=scales, max_outer=max_outer, warmup=warmup,
+                            strict_first_scale=strict, **model)
         if geom is not None and isinstance(scales, str) and scales == "auto":
             kept, why = _direction_limited_scales(geom, out)
             if why:
                 notes.append(why) if notes is not None else log.info(why)
                 out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=kept, max_outer=max_outer,
-                                    warmup=warmup, **model)
+                                    warmup=warmup, strict_first_scale=strict, **model)
+        if geom is not None and geom.kind == "parallel" and model.get("oversample_by") is None and not region_of_interest:
+            out = tuple(_spline_oversampled(st) for st in out)
         if isinstance(scales, str) and scales == "auto" and vol_shape is not None and model.get("oversample") is None:
             top = Stage.oversample  # the model's, which recipe_stages lowered where its grid is above the cap
             for s in sorted({st.scale for st in out if st.oversample < top}, reverse=True):
@@ -192,6 +204,43 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
         return out
     except StageError as exc:
         raise CalibrationError(str(exc)) from None
+
+
+def _region_of_interest_stages(stage_list, geom, vol_geom, recipe, scales, max_outer, warmup, model) -> tuple:
+    """The stages a region-of-interest scan runs: where ``stage_list`` is what the recipe gives the scan (from
+    :func:`calibrate`'s keywords or a config's recipe), the recipe's for a region of interest (``resolve_stages(...,
+    region_of_interest=True)``); otherwise ``stage_list`` with ``oversample_by = "auto"`` made ``"reconstruction"``.
+
+    Neither the strict first scale nor the spline-filled grid was measured to help there: no second run follows, and
+    rods wider than the field fitted worse on the spline volume (``docs/method.md`` §5.50)."""
+    kw = dict(vol_shape=vol_geom.shape, recipe=recipe, scales=scales, max_outer=max_outer, warmup=warmup, geom=geom,
+              notes=[], **model)
+    try:
+        same = tuple(stage_list) == resolve_stages(geom.det_shape, **kw)
+    except (CalibrationError, ValueError, TypeError):  # a stage of the user's own (an array basis) is not the recipe's
+        same = False
+    if same:
+        return resolve_stages(geom.det_shape, region_of_interest=True, **kw)
+    return tuple(st.replace(oversample_by="reconstruction") if st.oversample_by == "auto" else st for st in stage_list)
+
+
+def _spline_oversampled(stage: Stage) -> Stage:
+    """A parallel-beam FDK/FBP stage with ``oversample_by = "auto"``: its fine grid filled by cubic B-splines from its
+    own grid, but on a region-of-interest scan (``calibrate`` sets ``"reconstruction"`` there).
+
+    Back-projected on the 2x grid, every other slice of a parallel-beam scan
+    lies on a detector row when the axis's pitch toward the beam is 0, and the
+    reprojection of that FBP fits the data worse there than at a pitch of
+    ±0.3-0.9° (noise-free rods longer than the field, truncation weights;
+    on the 1x and 3x grids and with the spline the minimum is at 0): the FBP
+    rounds walked the pitch to -0.6 to -0.9° (0.096-0.130 px, the
+    opposite-view baseline 0.007-0.020 px; ``docs/method.md`` §5.50). On region-of-interest scans of rods the spline
+    volume fitted worse (``bench_accuracy.py --quick --roi 1.0 --parallel --split tuning``: three rods 0.054-0.26 px
+    -> 0.10-0.49 px).
+    """
+    if stage.oversample > 1 and isinstance(stage.reconstruct, str) and stage.reconstruct == "fdk":
+        return stage.replace(oversample_by="auto")
+    return stage
 
 
 def short_scan_reconstruction(geom: VectorGeometry, stages=None, **model) -> tuple[dict, Optional[str]]:
@@ -512,6 +561,8 @@ def calibrate(
     row_sums, guard_text = _row_sums_guard(row_sums, geom, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
+    if lateral:
+        stage_list = _region_of_interest_stages(stage_list, geom, vol_geom, recipe, scales, max_outer, warmup, model)
 
     def state_checkpoint(state):
         if checkpoint is not None:

@@ -45,7 +45,7 @@ __all__ = [
 #: Reconstructions of the correlation volume a stage can name.
 RECONSTRUCTIONS = ("fdk", "nonneg_ls", "cgls")
 #: Guards a stage can run before or after each round.
-OVERSAMPLE_BY = ("spline", "reconstruction")
+OVERSAMPLE_BY = ("spline", "reconstruction", "auto")
 GUARDS = ("consistency", "entropy")
 #: The basis of a jolt stage: a step at each view whose fit stays poor after the previous stages.
 JOLT_BASIS = "jolt_steps"
@@ -95,13 +95,17 @@ class Stage:
         The data are coarse-grained ``scale`` x ``scale`` for this stage.
     oversample : int
         Correlation voxels are ``oversample`` x finer than the stage's grid.
-    oversample_by : {"spline", "reconstruction"}
+    oversample_by : {"spline", "reconstruction", "auto"}
         How the FDK/FBP or ``nonneg_ls`` correlation volume reaches the
         finer grid: ``"spline"`` reconstructs on the stage's grid and
         interpolates by cubic B-splines (:func:`pdvc.recon.spline_upsample`;
         ``oversample³`` x cheaper); ``"reconstruction"`` reconstructs on the
         fine grid (``nonneg_ls``: B-spline unknowns on the stage's grid, the
         projector on the fine one). ``cgls`` always solves on the fine grid.
+        ``"auto"``: ``"spline"`` in parallel beam, ``"reconstruction"`` in
+        cone beam and on a region-of-interest scan (:func:`pdvc.calibrate`
+        decides; what :func:`resolve_stages` gives a parallel scan's FDK
+        stages, ``docs/method.md`` §5.50).
     rounds : int
         Rounds (reconstruct, correlate, fix the gauge) at most.
     tol_px : float
@@ -397,7 +401,7 @@ REFINE_ROUNDS = 4
 
 def recipe_stages(
     recipe: str = "default", det_shape=None, *, vol_shape=None, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
-    warmup_basis: str = "drift", jolts: bool = True, refine: bool = False, **model,
+    warmup_basis: str = "drift", jolts: bool = True, refine: bool = False, strict_first_scale: bool = False, **model,
 ) -> tuple:
     """The stage list of a named recipe.
 
@@ -444,6 +448,14 @@ def recipe_stages(
         coarsest scale, before the jolts (``docs/method.md`` §5.22). Off by
         default: better on the benchmark's scans, worse on a plain tilted
         axis.
+    strict_first_scale : bool
+        The model stage at the first scale stops, as those of the finer
+        scales do, at the first fresh reconstruction that fits worse than the
+        stage's best (``diverge_tol`` = ``FINER_SCALE_DIVERGE_TOL``) instead of
+        0.5 % worse, unless ``diverge_tol`` is given. :func:`pdvc.calibrate`
+        sets it for the default recipe on full turns, where the precession
+        recipe's second run follows: the rounds past the best one crept there
+        without changing what is returned (``docs/method.md`` §5.50).
     **model
         Overrides of the model stage's fields (``basis``, ``frame``,
         ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
@@ -507,7 +519,7 @@ def recipe_stages(
         if n_warm:
             stages.append(warmup_stage(at(s), scale=s, rounds=n_warm, basis=warmup_basis))
         fine = dict(until="rounds") if rounds[j] < n_outer else {}  # a refinement: its rounds, not a convergence
-        stages.append(at(s).replace(scale=s, rounds=rounds[j] - n_warm, **(finer if j > 0 else {}), **fine))
+        stages.append(at(s).replace(scale=s, rounds=rounds[j] - n_warm, **(finer if j > 0 or strict_first_scale else {}), **fine))
     last = stages[-1]  # the jolts are looked for at the finest scale, on the smooth model's own volumes
     if recipe == "default" and refine and spec.get("candidates") and model.get("reconstruct") is None:
         stages.append(refine_stage(at(sched[0]), scale=sched[0]))

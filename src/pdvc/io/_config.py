@@ -113,7 +113,8 @@ that type needs) are required; everything else has the default shown.
     # noise_floor = 1.05        # PGD: stop when chi falls below this
     # rcond = 1e-6              # eigenvalue ratio below which a direction is unobservable
     # oversample = 2            # correlation grid this many times finer than the reconstruction grid
-    # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper)
+    # oversample_by = "reconstruction"  # or "spline": FDK on the stage grid, cubic B-spline to the finer one (8x cheaper);
+                                # unset, parallel-beam FDK stages take "auto" (the spline, but on a region of interest)
     # background = "auto"       # a smooth background per view fitted with the motion: -1 none, 0 offset, 1 plane,
                                 # 2 quadratic; "auto": a plane when the residual's per-view offset is well above the noise
     # candidates = ["fixed_axis", "precession"]  # default recipe: motion models compared with its own ("axis") on
