@@ -225,18 +225,15 @@ def _region_of_interest_stages(stage_list, geom, vol_geom, recipe, scales, max_o
 
 
 def _spline_oversampled(stage: Stage) -> Stage:
-    """A parallel-beam FDK/FBP stage with ``oversample_by = "auto"``: its fine grid filled by cubic B-splines from its
-    own grid, but on a region-of-interest scan (``calibrate`` sets ``"reconstruction"`` there).
+    """A parallel-beam FDK/FBP stage with ``oversample_by = "auto"``: its fine grid filled by cubic B-splines from
+    its own grid (``calibrate`` makes it ``"reconstruction"`` on a region-of-interest scan).
 
-    Back-projected on the 2x grid, every other slice of a parallel-beam scan
-    lies on a detector row when the axis's pitch toward the beam is 0, and the
-    reprojection of that FBP fits the data worse there than at a pitch of
-    ±0.3-0.9° (noise-free rods longer than the field, truncation weights;
-    on the 1x and 3x grids and with the spline the minimum is at 0): the FBP
-    rounds walked the pitch to -0.6 to -0.9° (0.096-0.130 px, the
-    opposite-view baseline 0.007-0.020 px; ``docs/method.md`` §5.50). On region-of-interest scans of rods the spline
-    volume fitted worse (``bench_accuracy.py --quick --roi 1.0 --parallel --split tuning``: three rods 0.054-0.26 px
-    -> 0.10-0.49 px).
+    Back-projected on the 2x grid, every other slice of a parallel-beam scan lies on a detector row when the axis's
+    pitch toward the beam is 0, and the reprojection of that FBP fits the data worse there than at a pitch of
+    ±0.3-0.9° (noise-free rods longer than the field, truncation weights; on the 1x and 3x grids and with the spline
+    the minimum is at 0): the FBP rounds walked the pitch to -0.6 to -0.9° (0.096-0.130 px, the opposite-view
+    baseline 0.007-0.020 px; ``docs/method.md`` §5.50). On region-of-interest scans of rods the spline volume fitted
+    worse (``bench_accuracy.py --quick --roi 1.0 --parallel --split tuning``: three rods 0.054-0.26 -> 0.10-0.49 px).
     """
     if stage.oversample > 1 and isinstance(stage.reconstruct, str) and stage.reconstruct == "fdk":
         return stage.replace(oversample_by="auto")
