@@ -281,6 +281,7 @@ def _install_probe() -> _Probe:
     probe.wrap(drv, "coarse_grain", "coarse")
     probe.wrap(drv, "correlate", "correlate")
     probe.wrap(eng, "reduce_views", "pass")
+    probe.wrap(eng, "reduce_views_background", "pass")  # a pass with a background per view profiled out (--flat)
     probe.wrap(eng, "_eig_solve", "solve")
     probe.wrap(eng, "_assemble", "solve")
     return probe
