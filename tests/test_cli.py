@@ -282,7 +282,8 @@ def test_resume_with_changed_data_is_refused(simulated, tmp_path):
 
 
 def test_cli_exit_code_says_a_calibration_did_not_succeed(simulated, tmp_path, monkeypatch, capsys):
-    # a calibration made to end worse than nominal (the driver is broken on purpose): exit 3, outputs written
+    # a calibration made to end worse than nominal (the driver is broken on purpose: every other view shifted, which
+    # no global motion of the sample takes back): exit 3, outputs written
     import dataclasses
 
     from pdvc.calibration import _pipeline
@@ -293,7 +294,8 @@ def test_cli_exit_code_says_a_calibration_did_not_succeed(simulated, tmp_path, m
     def broken(*a, **kw):
         out = real(*a, **kw)
         n = out.poses.n_views
-        return dataclasses.replace(out, poses=Poses(np.zeros((n, 3)), np.tile([4.0, 0.0, 2.0], (n, 1))))
+        shift = np.tile([4.0, 0.0, 2.0], (n, 1)) * (np.arange(n) % 2)[:, None]
+        return dataclasses.replace(out, poses=Poses(np.zeros((n, 3)), shift))
 
     monkeypatch.setattr(_pipeline, "run_stages", broken)
     cfg = simulated / "config.toml"

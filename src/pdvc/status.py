@@ -32,6 +32,7 @@ class Status(enum.IntEnum):
     CONSISTENCY_GUARD = 9
     ROW_SUMS_GUARD = 10
     AXIS_OFFSET = 11
+    NOMINAL_HOLDS = 12
     # -- failures ----------------------------------------------------------------
     MAX_ITER = 0
     NO_DESCENT = -1
@@ -71,6 +72,8 @@ _MESSAGES = {
     "scan; the axis offset measured from opposite views (in parallel beam with its lean in the detector plane, where "
     "they confirm it), which match each other's mirror image better about it than about the nominal axis, is "
     "returned (no per-view motion)",
+    Status.NOMINAL_HOLDS: "the nominal geometry holds: the calibration moved the sample points by less than the stages' "
+    "tolerance from it (no motion the data measure); the nominal geometry is returned",
     Status.MAX_ITER: "not converged: the iteration cap was reached while the poses were still moving",
     Status.NO_DESCENT: "not converged: no damped step lowered chi any further; the last accepted poses are kept",
     Status.DIVERGED: "diverged: no round of the stage made the reconstruction fit the data better; "

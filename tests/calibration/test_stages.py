@@ -286,9 +286,10 @@ def small():
 
 
 def test_a_result_worse_than_nominal_returns_the_nominal_geometry_and_fails(small, monkeypatch, tmp_path):
-    # A driver that ends 3 px off (a broken calibration, made on purpose here): the pipeline's own
-    # check sees the fit worse than nominal, returns the nominal geometry, and says it is no success;
-    # the CLI path writes every output and run.json says why.
+    # A driver that ends 3 px off (a broken calibration, made on purpose here: every other view shifted by 3 voxels,
+    # which no global motion of the sample, the gauge, takes back): the pipeline's own check sees the fit worse than
+    # nominal, returns the nominal geometry, and says it is no success; the CLI path writes every output and run.json
+    # says why.
     from pdvc.calibration import _pipeline
     from pdvc.geometry import Poses
 
@@ -298,7 +299,7 @@ def test_a_result_worse_than_nominal_returns_the_nominal_geometry_and_fails(smal
     def broken(*a, **kw):
         out = real(*a, **kw)
         n = c.scan.geometry.n_views
-        bad = Poses(np.zeros((n, 3)), np.tile([3.0, 0.0, 1.0], (n, 1)))
+        bad = Poses(np.zeros((n, 3)), np.tile([3.0, 0.0, 1.0], (n, 1)) * (np.arange(n) % 2)[:, None])
         import dataclasses
 
         return dataclasses.replace(out, poses=bad)
@@ -313,6 +314,61 @@ def test_a_result_worse_than_nominal_returns_the_nominal_geometry_and_fails(smal
     assert "worse than the nominal" in run["message"]
     for name in ("geometry.npy", "motion.csv", "result.h5", "report.html", "volume.tif"):
         assert (tmp_path / "o" / name).is_file()
+
+
+def test_the_distance_from_nominal_is_the_rms_displacement_of_the_sample_points_without_the_gauge():
+    # Known answers in parallel beam (pixel = voxel = 1): a vertical shift of +a on even views and -a on odd ones moves
+    # every sample point's projection by a along the rows; the same shift on every view moves the sample as a whole
+    # (the gauge), which no data measure.
+    from pdvc.calibration._pipeline import _moved_from_nominal
+    from pdvc.geometry import Poses
+
+    n = 40
+    geom = pdvc.parallel(np.linspace(0.0, np.pi, n, endpoint=False), det_shape=(24, 32), pixel=1.0)
+    vg = pdvc.VolumeGeometry((20, 24, 24))
+    a = 0.004
+    t = np.zeros((n, 3))
+    t[:, 2] = a * (-1.0) ** np.arange(n)
+    assert _moved_from_nominal(geom, vg, Poses(np.zeros((n, 3)), t), True) == pytest.approx(a, rel=1e-6)
+    t[:, 2] = 0.7
+    assert _moved_from_nominal(geom, vg, Poses(np.zeros((n, 3)), t), True) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("a, holds", [(0.004, True), (0.05, False)])
+def test_stages_that_end_within_tol_px_of_nominal_return_it_as_a_success(small, monkeypatch, tmp_path, a, holds):
+    # Stages that end 0.004 px RMS from the nominal geometry (below their tol_px of 0.01 px) measured no motion: the
+    # nominal geometry is returned as a success (NOMINAL_HOLDS), the stages' in rejected_geometry; 0.05 px is a
+    # measurement (here a wrong one, which the SNR check rejects as worse than nominal).
+    from pdvc.calibration import _pipeline
+    from pdvc.calibration._pipeline import _moved_from_nominal
+    from pdvc.geometry import Poses
+
+    c = small
+    real = _pipeline.run_stages
+    n = c.scan.geometry.n_views
+    t = np.zeros((n, 3))
+    t[:, 2] = a * (-1.0) ** np.arange(n)
+    near = Poses(np.zeros((n, 3)), t)
+    scale = _moved_from_nominal(c.scan.geometry, c.vol_geom, near, True) / a  # the cone's magnification over the pixel
+    near = Poses(np.zeros((n, 3)), t / scale)  # a px RMS on the detector
+
+    def ended_near_nominal(*args, **kw):
+        import dataclasses
+
+        return dataclasses.replace(real(*args, **kw), poses=near)
+
+    monkeypatch.setattr(_pipeline, "run_stages", ended_near_nominal)
+    res = pdvc.calibrate(c.scan.projections, c.scan.geometry, c.vol_geom, out_dir=tmp_path / "o", max_outer=1,
+                         fixed=("rx", "ry", "rz"))
+    assert res.geometry == c.scan.geometry and res.rejected_geometry is not None
+    if holds:
+        assert res.status == Status.NOMINAL_HOLDS and res.success
+        assert f"{a:.4f} px RMS from the nominal one, less than 0.01 px" in res.message
+        assert np.all(res.poses.translations == 0.0) and np.all(res.snr_after == res.snr_before)
+        run = json.loads((tmp_path / "o" / "run.json").read_text())
+        assert run["success"] is True and run["status_name"] == "nominal_holds"
+    else:
+        assert res.status == Status.WORSE_THAN_NOMINAL and not res.success
 
 
 def test_final_volume_is_on_the_grid_asked_for_whatever_the_scales(small):

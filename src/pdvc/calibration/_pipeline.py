@@ -6,7 +6,8 @@ This is the only module that knows the order::
       -> coarse initialisation (axis offset from opposite views, when the scan has them)
       -> the stage list (a recipe, or stages given) run by :func:`run_stages`
       -> final reconstruction on the user's grid, at full resolution
-      -> never worse than nominal: the calibrated geometry must fit the data better
+      -> never worse than nominal: the calibrated geometry must fit the data better, and move the sample points by
+         more than the stages' tolerance from the nominal one (else the nominal geometry holds)
       -> metrics (per-view SNR, entropy), what moved (``describe_motion``) and the
          assessment of the poses kept (uncertainty, observability, motion modes)
 
@@ -56,7 +57,8 @@ class CalibrationResult(PosesResult):
     geometry : VectorGeometry
         The geometry returned, at full detector resolution: the calibrated
         one, or the nominal one when the calibration fitted the data worse
-        (``status`` ``WORSE_THAN_NOMINAL``).
+        (``status`` ``WORSE_THAN_NOMINAL``) or moved the sample points by
+        less than the stages' ``tol_px`` from it (``NOMINAL_HOLDS``).
     nominal : VectorGeometry
     poses : Poses
         ``geometry`` as poses relative to ``nominal``, gauge fixed (``gauge``).
@@ -92,7 +94,8 @@ class CalibrationResult(PosesResult):
     rejected_geometry : VectorGeometry or None
         The calibrated geometry that the final check rejected (the nominal
         geometry returned, or with ``Status.AXIS_OFFSET`` the axis that
-        the opposite views confirm).
+        the opposite views confirm); with ``Status.NOMINAL_HOLDS`` the
+        stages' geometry, within ``tol_px`` of the nominal one.
     truncation : Truncation or None
         Whether the sample reaches past the volume box (read off the
         nominal reconstruction); when it crosses the top or bottom face the
@@ -1640,6 +1643,18 @@ def _same_volume(made_by: Stage, stage: Stage) -> bool:
             and (made_by.scale, made_by.oversample, made_by.oversample_by) == (stage.scale, stage.oversample, stage.oversample_by))
 
 
+def _moved_from_nominal(geom: VectorGeometry, vol_geom: VolumeGeometry, poses: Poses, fix_scale) -> float:
+    """How far ``poses`` move the sample points from the nominal geometry: RMS over the views and the points of
+    their displacement on the detector (full-resolution pixels), the gauge taken out, as the stages measure a round's
+    increment (``tol_px``)."""
+    from ..geometry import sample_points
+
+    pts = sample_points(vol_geom, 3, fraction=0.8)
+    q = poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale)
+    d = np.linalg.norm(geom.apply(q).project_points(pts) - geom.project_points(pts), axis=-1)
+    return float(np.sqrt(np.mean(d**2)))
+
+
 def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2, weights, times, center, backend, fix_scale, emit, timings, extra,
             p_out=None, mirror_start=None, fixed_pattern=""):
     """Final volume on the user's grid, the check against nominal, metrics, motion summary and assessment.
@@ -1692,6 +1707,12 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
         # subtracted: what the calibration moves is not seen above the noise (docs/method.md §5.17)
         rejected, status = calibrated, Status.UNDETERMINED
         why = f"region-of-interest scan: chi {d0.chi:.3f} at the nominal geometry, {d1.chi:.3f} calibrated"
+    elif (moved := _moved_from_nominal(geom, vol_geom, poses, fix_scale)) < (tol := min(st.tol_px for st in stages)):
+        # the loop treats a round that moves the sample points by less than tol_px as no move: a geometry that close
+        # to the nominal one is no measurement of motion, and it fits as well by chance as worse (docs/method.md §5.51)
+        rejected, status = calibrated, Status.NOMINAL_HOLDS
+        why = (f"the calibrated geometry moves the sample points by {moved:.4f} px RMS from the nominal one, less than "
+               f"{tol:g} px; mean SNR {np.mean(snr_before):.3f} dB nominal, {np.mean(snr_after):.3f} dB calibrated")
     elif np.mean(snr_after) < np.mean(snr_before):
         rejected, status = calibrated, Status.WORSE_THAN_NOMINAL
         why = f"mean SNR {np.mean(snr_before):.2f} dB nominal, {np.mean(snr_after):.2f} dB calibrated"
@@ -1707,7 +1728,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
             why = (f"region-of-interest scan: reconstructed from half the views, the calibrated geometry predicts the "
                    f"other half worse than the nominal one, residual x{cv_calibrated / cv_nominal:.4f}")
     fallback = None
-    if rejected is not None and mirror_start is not None:
+    if rejected is not None and mirror_start is not None and status != Status.NOMINAL_HOLDS:
         # a region-of-interest scan whose stages' geometry its reconstructions cannot confirm: the axis offset that
         # its opposite views confirm against the nominal axis, without a reconstruction, where its mean SNR is not
         # below the nominal one's either (docs/method.md §5.42)
@@ -1730,7 +1751,7 @@ def _finish(p, geom, vol_geom, vol_initial, drv, stages, status, message, gamma2
     nominal_returned = rejected is not None and fallback is None
     if nominal_returned:
         message = f"{status.message} ({why}; the run itself ended with: {message})"
-        log.warning(message)
+        (log.info if status.success else log.warning)(message)
         poses, calibrated, vol, snr_after = Poses.identity(geom.n_views), geom, vol_initial, snr_before
         diagnoses = (diagnoses[0], diagnoses[0])
         other = ""  # the nominal geometry returned: its diagnosis is the nominal one
