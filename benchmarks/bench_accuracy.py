@@ -66,6 +66,7 @@ combinations).
     python benchmarks/bench_accuracy.py --quick --short-scan    # ... as cone-beam short scans (180° + the fan angle)
     python benchmarks/bench_accuracy.py --quick --parallel      # ... as parallel scans over a full turn
     python benchmarks/bench_accuracy.py --quick --roi 1.0       # samples wider than the field of view
+    python benchmarks/bench_accuracy.py --quick --still         # the same scans without motion: none invented?
 """
 
 from __future__ import annotations
@@ -114,7 +115,8 @@ AIR = {"drift": 0.0, "flat": 1.0, "flat_rows": 0.0, "zingers": 0.0, "zinger_size
 # --half-turn: every case a parallel scan over [0°, 180°) (the synchrotron case of issue #10); --short-scan: every case a
 # cone-beam short scan, 180° plus the fan angle, its end views included (a parallel case takes SHORT_SCAN_CONE_DEG);
 # --parallel: every case a parallel scan over a full turn
-SCAN = {"half_turn": False, "end_point": False, "short_scan": False, "parallel": False, "supersampling": 2}
+SCAN = {"half_turn": False, "end_point": False, "short_scan": False, "parallel": False, "supersampling": 2,
+        "still": False}
 # --roi: the samples' radius in units of the volume's height n (0: the families' own, 0.36 n, inside the volume), on a
 # volume 1.4 n wide, as wide as the field of view. Above 0.7 n the sample is wider than the detector's field of view:
 # a region-of-interest scan (lateral truncation)
@@ -293,6 +295,8 @@ def true_poses(c: Case, angles):
 
     p, m, d2r = c.params, c.motion, np.deg2rad
     times = np.linspace(0.0, 1.0, angles.size)
+    if m == "none":  # --still: a scanner that holds its nominal geometry
+        return np.zeros((angles.size, 3)), np.zeros((angles.size, 3))
     if m == "offset":
         return tilted_axis_poses(angles, tilt=0.0, offset=(p["offset"], 0, 0))
     if m in ("tilt_det", "tilt_beam"):
@@ -427,6 +431,8 @@ def run_case(c: Case) -> dict:
 
     if SCAN["half_turn"] or SCAN["parallel"]:
         c = replace(c, cone_deg=0.0)
+    if SCAN["still"]:  # the case's sample, dose, beam and views, no motion
+        c = replace(c, motion="none", params={})
     if SCAN["short_scan"] and c.cone_deg == 0:
         c = replace(c, cone_deg=SHORT_SCAN_CONE_DEG)
     row = dict(seed=c.seed, split=c.split, family=c.family, motion=c.motion, n=c.n, i0=c.i0, cone_deg=c.cone_deg,
@@ -576,6 +582,7 @@ def header(args) -> list:
         + ("; every full turn over [0, 360 deg], its last view at 360 deg repeating the first (--end-point)"
            if SCAN["end_point"] and not SCAN["half_turn"] else "")
         + ("; every case a parallel scan over a full turn (--parallel)" if SCAN["parallel"] else "")
+        + ("; every case without motion (--still)" if SCAN["still"] else "")
         + (f"; every case a cone-beam short scan over 180 deg + the fan angle (--short-scan; parallel cases at "
            f"{SHORT_SCAN_CONE_DEG:g} deg)" if SCAN["short_scan"] else "")
         + (f"; samples of radius {ROI['radius']:g} n, wider than the field of view of 0.7 n, on a volume 1.4 n wide "
@@ -621,7 +628,7 @@ def table(rows: list) -> list:
         groups.setdefault(("(all)", r["motion"]), []).append(r)
         groups.setdefault(("(all)", "(all)"), []).append(r)
     order = {k: i for i, k in enumerate(FAMILIES + ("(all)",))}
-    morder = {k: i for i, k in enumerate(MOTIONS + ("(all)",))}
+    morder = {k: i for i, k in enumerate(MOTIONS + ("none", "(all)"))}
     for (fam, mot), g in sorted(groups.items(), key=lambda kv: (order[kv[0][0]], morder[kv[0][1]])):
         col = lambda k: [r[k] for r in g]  # noqa: E731
         out.append(
@@ -740,6 +747,9 @@ def main(argv=None) -> int:
                          "scanners record it)")
     ap.add_argument("--parallel", action="store_true",
                     help="every case a parallel scan over a full turn (cone angle 0)")
+    ap.add_argument("--still", action="store_true",
+                    help="every case without motion (the nominal geometry is the truth): what pdvc returns is the "
+                         "motion it invents; any error above 0 counts as worse than nominal")
     ap.add_argument("--short-scan", action="store_true",
                     help="every case a cone-beam short scan over 180 deg + the fan angle, end views included "
                          f"(parallel cases at a {SHORT_SCAN_CONE_DEG:g} deg cone half-angle)")
@@ -776,6 +786,7 @@ def main(argv=None) -> int:
         ap.error("--end-point and --short-scan exclude each other (a short scan holds both end views already)")
     SCAN["end_point"] = bool(args.end_point)
     SCAN["parallel"] = bool(args.parallel)
+    SCAN["still"] = bool(args.still)
     if args.supersampling < 1:
         ap.error("--supersampling must be a positive integer")
     SCAN["supersampling"] = int(args.supersampling)
