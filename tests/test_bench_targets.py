@@ -58,3 +58,17 @@ def test_a_supersampling_below_one_is_refused_by_name(capsys):
             bench.main(["--tiny", "--supersampling", "0"])
         assert bench.SCAN["supersampling"] == 2  # the default every figure in the docs used
     assert "--supersampling must be a positive integer" in capsys.readouterr().err
+
+
+def test_a_still_case_has_no_motion_and_counts_only_toward_worse_than_nominal():
+    import dataclasses
+
+    import numpy as np
+
+    with benchmark_module("bench_accuracy") as bench:
+        c = dataclasses.replace(bench.case(1, "tiny"), motion="none", params={})  # what --still makes of a case
+        rv, t = bench.true_poses(c, np.linspace(0.0, 2 * np.pi, 12, endpoint=False))
+        assert rv.shape == t.shape == (12, 3) and not rv.any() and not t.any()
+        # no smooth-motion, jolt or 3x verdict for scans without motion: only whether pdvc invented one
+        lines = bench.targets([_row(0, "none", 0.004, worse=True), _row(1, "none", 0.0)])
+        assert lines[1:] == ["  worse than nominal: 1 of 2 cases (seeds [0]): NOT met"]
