@@ -432,7 +432,7 @@ class _Context:
         self.times = times
         self.backend = backend
         self.center = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float)
-        self.points = sample_points(vol_geom, 3, fraction=0.8)
+        self.points = increment_points(vol_geom)
         self._scaled: dict = {}
         self.lipschitz: dict = {}  # nonneg_ls step bounds, per grid: estimated once per scan
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
@@ -516,7 +516,18 @@ class _Context:
 
     def moves(self, a: Poses, b: Poses) -> np.ndarray:
         """Detector displacement of the sample points from poses ``a`` to ``b`` (full-resolution pixels)."""
-        return self.geom.apply(b).project_points(self.points) - self.geom.apply(a).project_points(self.points)
+        return point_moves(self.geom, self.points, a, b)
+
+
+def increment_points(vol_geom: VolumeGeometry) -> np.ndarray:
+    """The sample points whose detector displacement measures a round's increment (``Stage.tol_px``): 3 x 3 x 3 over
+    80 % of the volume."""
+    return sample_points(vol_geom, 3, fraction=0.8)
+
+
+def point_moves(geom: VectorGeometry, points, a: Poses, b: Poses) -> np.ndarray:
+    """Detector displacement of ``points`` from poses ``a`` to ``b`` on ``geom`` (its pixels)."""
+    return geom.apply(b).project_points(points) - geom.apply(a).project_points(points)
 
 
 def hold_vertical(poses: Poses, vertical, geom, center) -> Poses:

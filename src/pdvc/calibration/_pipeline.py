@@ -33,8 +33,8 @@ from ..projectors import forward
 from ..status import Status
 from ._diagnose import diagnose_residual
 from ._init import MIRROR_MIN_T, SHORT_SCAN_OPPOSITE_FRACTION, InitError, distinct_directions, opposite_fraction
-from ._driver import (PosesResult, correlation_volume, data_at_scale, hold_vertical, nonneg_subsets, reconstruct, refined_grid,
-                      run_stages, stage_background)
+from ._driver import (PosesResult, correlation_volume, data_at_scale, hold_vertical, increment_points, nonneg_subsets,
+                      point_moves, reconstruct, refined_grid, run_stages, stage_background)
 from ._outer import gauge_text
 from ._select import with_model
 from ._stages import _RECIPE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS, Stage, StageError, recipe_stages
@@ -1647,11 +1647,8 @@ def _moved_from_nominal(geom: VectorGeometry, vol_geom: VolumeGeometry, poses: P
     """How far ``poses`` move the sample points from the nominal geometry: RMS over the views and the points of
     their displacement on the detector (full-resolution pixels), the gauge taken out, as the stages measure a round's
     increment (``tol_px``)."""
-    from ..geometry import sample_points
-
-    pts = sample_points(vol_geom, 3, fraction=0.8)
     q = poses.gauge_fixed(geom, center=vol_geom.offset, scale=fix_scale)
-    d = np.linalg.norm(geom.apply(q).project_points(pts) - geom.project_points(pts), axis=-1)
+    d = np.linalg.norm(point_moves(geom, increment_points(vol_geom), Poses.identity(geom.n_views), q), axis=-1)
     return float(np.sqrt(np.mean(d**2)))
 
 
