@@ -29,7 +29,7 @@ from pdvc.calibration import (
     stages_from_dicts,
     stages_to_dicts,
 )
-from pdvc.calibration._stages import REFINE_ROUNDS
+from pdvc.calibration._stages import NONNEG_REFINE_SUBSETS, REFINE_ROUNDS
 from pdvc.io import ConfigError, load_config, write_config
 
 
@@ -49,6 +49,9 @@ from pdvc.io import ConfigError, load_config, write_config
         (dict(stall_ratio=-1.0), "stall_ratio"),
         (dict(oversample_by="zoom"), "oversample_by"),
         (dict(accelerate="yes"), "accelerate"),
+        (dict(subsets=0), "subsets"),
+        (dict(subsets=True), "subsets"),
+        (dict(subsets="many"), "subsets"),
     ],
 )
 def test_a_bad_stage_field_is_named(kw, field):
@@ -73,6 +76,11 @@ def test_default_recipe_on_nonneg_ls_spends_its_rounds_at_the_coarse_scale_and_r
     coarse, fine = stages[1], stages[2]
     assert coarse.until == "converged" and fine.until == "rounds"
     assert fine.diverge_tol == 0.0 and fine.reconstruct == coarse.reconstruct == "nonneg_ls"
+    # the refining round's one volume by more ordered subsets (§5.52); the coarse rounds keep the automatic ones
+    assert [s.subsets for s in stages] == ["auto", "auto", NONNEG_REFINE_SUBSETS, NONNEG_REFINE_SUBSETS]
+    assert [s.subsets for s in recipe_stages("default", (134, 160), reconstruct="nonneg_ls", subsets=2)] == [2] * 4
+    assert {s.subsets for s in recipe_stages("default", (134, 160))} == {"auto"}
+    assert {s.subsets for s in recipe_stages("default", (134, 160), reconstruct="nonneg_ls", max_outer=10)} == {"auto"}
     # the user's max_outer, FDK, one scale, the precession recipe: rounds as before
     assert [s.rounds for s in recipe_stages("default", (134, 160), reconstruct="nonneg_ls", max_outer=10)] == [1, 9, 10, 5]
     assert [s.rounds for s in recipe_stages("default", (134, 160))] == [1, 9, 10, 5]
@@ -531,3 +539,22 @@ def test_nonneg_ls_correlation_volume_by_spline_is_the_upsampled_stage_fit():
     np.testing.assert_allclose(correlation_volume(p, vg, g, st, weights=w),
                                spline_upsample(nonneg_ls(p, vg, g, weights=w, subsets=2), 2), rtol=1e-6, atol=1e-6)
     assert not np.allclose(correlation_volume(p, vg, g, st), correlation_volume(p, vg, g, st, weights=w))
+
+
+def test_a_stage_that_sets_its_subsets_fits_its_nonneg_ls_volume_by_them():
+    """Stage.subsets = m: at most m ordered subsets of at least 15 views each (the refining round's 6 of a 91-view
+    half turn); the volume is nonneg_ls's with those subsets, bit for bit, and differs from the automatic one's."""
+    from pdvc.calibration import correlation_volume
+    from pdvc.calibration._driver import nonneg_subsets
+    from pdvc.recon import nonneg_ls, spline_upsample
+    from tests.correlation.cases import make_case
+
+    assert [nonneg_subsets(n, 6) for n in (14, 29, 45, 60, 91, 1440)] == [1, 1, 3, 4, 6, 6]
+    assert [nonneg_subsets(n, 2) for n in (29, 30, 91)] == [1, 2, 2]
+    assert nonneg_subsets(91, "auto") == nonneg_subsets(91) == 3
+    c = make_case("offset", n=24, n_views=64)
+    p, g, vg = c.scan.projections, c.scan.geometry, c.vol_geom
+    st = Stage(reconstruct="nonneg_ls", oversample=2, oversample_by="spline", subsets=6)
+    got = correlation_volume(p, vg, g, st)
+    np.testing.assert_array_equal(got, spline_upsample(nonneg_ls(p, vg, g, subsets=4), 2))
+    assert not np.allclose(got, correlation_volume(p, vg, g, st.replace(subsets="auto")), rtol=1e-4, atol=1e-4)

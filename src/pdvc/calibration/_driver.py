@@ -56,6 +56,9 @@ NONNEG_PRECONDITION = False
 # time; subsets of 15 views, or more than 3 subsets, moved rods of the half-turn splits by 0.01 px; docs/method.md §5.24)
 NONNEG_SUBSET_VIEWS = 30
 NONNEG_MAX_SUBSETS = 3
+# a stage that sets its subsets (Stage.subsets = m: the default's refining round at the finest scale of a short scan):
+# at most m subsets of at least NONNEG_MIN_SUBSET_VIEWS views each (docs/method.md §5.52)
+NONNEG_MIN_SUBSET_VIEWS = 15
 
 __all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
            "jolt_views", "jolt_steps"]
@@ -393,14 +396,21 @@ def correlation_volume(projections, vol_geom: VolumeGeometry, geom: VectorGeomet
                 lipschitz[key] = nonneg_ls_lipschitz(grid, geom, coarsen=coarsen, precondition=NONNEG_PRECONDITION)
             lip = lipschitz[key]
         vol = nonneg_ls(projections, grid, geom, coarsen=coarsen, weights=weights, lipschitz=lip, n_iter=NONNEG_ITER,
-                        precondition=NONNEG_PRECONDITION, subsets=nonneg_subsets(geom.n_views))
+                        precondition=NONNEG_PRECONDITION, subsets=nonneg_subsets(geom.n_views, stage.subsets))
         return spline_upsample(vol, k) if grid is vol_geom and k > 1 else vol
     return cgls(projections, fine, geom)
 
 
-def nonneg_subsets(n_views: int) -> int:
-    """The ordered subsets of the calibration's ``nonneg_ls`` volumes for a scan of ``n_views`` views."""
-    return max(1, min(NONNEG_MAX_SUBSETS, int(n_views) // NONNEG_SUBSET_VIEWS))
+def nonneg_subsets(n_views: int, subsets="auto") -> int:
+    """The ordered subsets of a calibration's ``nonneg_ls`` volume for a scan of ``n_views`` views.
+
+    ``subsets`` is the stage's (:class:`Stage`): ``"auto"``, at most
+    ``NONNEG_MAX_SUBSETS`` of at least ``NONNEG_SUBSET_VIEWS`` views each;
+    an int m, at most m of at least ``NONNEG_MIN_SUBSET_VIEWS`` views each.
+    """
+    if subsets == "auto":
+        return max(1, min(NONNEG_MAX_SUBSETS, int(n_views) // NONNEG_SUBSET_VIEWS))
+    return max(1, min(int(subsets), int(n_views) // NONNEG_MIN_SUBSET_VIEWS))
 
 
 def data_at_scale(projections, geom: VectorGeometry, vol_geom: VolumeGeometry, weights, gamma2: float, s: int):

@@ -165,6 +165,18 @@ class Stage:
         ``OWN_MODEL_GAIN`` (:func:`pick_model`); the winner replaces the stage's model,
         and every later stage that lists candidates takes it. Once per run,
         at the first such stage. Empty (default for a stage): no choice.
+    subsets : "auto" or int
+        Ordered subsets of a ``nonneg_ls`` volume (:func:`pdvc.recon.nonneg_ls`'s
+        ``subsets``): ``"auto"``, at most ``NONNEG_MAX_SUBSETS`` (3)
+        interleaved subsets of at least ``NONNEG_SUBSET_VIEWS`` (30) views
+        each; an int m, at most m subsets of at least
+        ``NONNEG_MIN_SUBSET_VIEWS`` (15) views each (constants of
+        ``pdvc.calibration._driver``). More subsets are cheaper and lean
+        more toward their last views: over a stage's rounds that moved rods
+        by 0.01 px (``docs/method.md`` §5.24), in the default recipe's one
+        refining round at the finest scale of a short scan (6,
+        ``NONNEG_REFINE_SUBSETS``) it did not (§5.52). Other volumes
+        ignore it.
     robust : float or None
         Huber's cut on the residual, in its robust standard deviation
         (:func:`pdvc.correlate`'s ``robust``): every Jacobian pass weighs
@@ -206,6 +218,7 @@ class Stage:
     candidates: tuple = ()
     extrapolate: bool = False
     robust: Optional[float] = None
+    subsets: Any = "auto"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -268,6 +281,11 @@ class Stage:
                 raise StageError(f"{w}robust must be a positive Huber threshold (residual std), or 0 or None (plain least squares), "
                                  f"got {val!r}")
             set_("robust", float(val) if val > 0 else None)
+        if self.subsets != "auto":
+            val = self.subsets
+            if not isinstance(val, (int, np.integer)) or isinstance(val, bool) or val < 1:
+                raise StageError(f"{w}subsets must be 'auto' or an int >= 1 (nonneg_ls ordered subsets), got {val!r}")
+            set_("subsets", int(val))
         if self.stall_ratio is not None and not (isinstance(self.stall_ratio, (int, float)) and self.stall_ratio > 0):
             raise StageError(f"{w}stall_ratio must be a positive number or None, got {self.stall_ratio!r}")
 
@@ -393,6 +411,10 @@ _RECIPE_ROUNDS = {"default": 10, "precession": 8, "jolts": 8, "axis": 10}
 # NONNEG_FINE_ROUNDS refining rounds (a fine round costs ~8 coarse ones; docs/method.md §5.15)
 NONNEG_COARSE_ROUNDS = 2
 NONNEG_FINE_ROUNDS = 1
+# ... whose volume is fitted by 6 ordered subsets instead of the rounds' 3: one round cannot accumulate the lean of
+# each subset toward its own views that several rounds did (the 180-degree stand-in's refining nonneg_ls 20.4 -> 10.4 s,
+# the tuning and fresh two-scale half turns and cone-beam short scans within 0.0003 px per case; docs/method.md §5.52)
+NONNEG_REFINE_SUBSETS = 6
 
 # the default recipe's refinement (docs/method.md §5.22): rounds of the precession model on non-negative
 # least-squares volumes at the coarsest scale, from the poses the model stages kept
@@ -518,7 +540,9 @@ def recipe_stages(
         n_warm = min(warmup, rounds[j] - 1) if base.frees_rotation and j == 0 else 0
         if n_warm:
             stages.append(warmup_stage(at(s), scale=s, rounds=n_warm, basis=warmup_basis))
-        fine = dict(until="rounds") if rounds[j] < n_outer else {}  # a refinement: its rounds, not a convergence
+        # a refinement: its rounds, not a convergence; its one volume by more ordered subsets, unless the user chose them
+        fine = dict(until="rounds", subsets=NONNEG_REFINE_SUBSETS if base.subsets == "auto" else base.subsets) \
+            if rounds[j] < n_outer else {}
         stages.append(at(s).replace(scale=s, rounds=rounds[j] - n_warm, **(finer if j > 0 or strict_first_scale else {}), **fine))
     last = stages[-1]  # the jolts are looked for at the finest scale, on the smooth model's own volumes
     if recipe == "default" and refine and spec.get("candidates") and model.get("reconstruct") is None:

@@ -132,7 +132,8 @@ that type needs) are required; everything else has the default shown.
     # basis = "drift"           # reconstruct, scale, oversample, oversample_by, rounds, tol_px, until ("converged" |
     # frame = "lab"             # "rounds"), stall_ratio (0: none), guards, diverge_tol, entropy_tol,
     # fixed = ["rx", "ry", "rz"]  # max_iter, accelerate, max_modes, pgd_passes, min_gain, noise_floor, rcond, background,
-                                # candidates, extrapolate, robust (0: none)
+                                # candidates, extrapolate, robust (0: none), subsets ("auto" | int: nonneg_ls
+                                # ordered subsets)
     # until = "rounds"
     # rounds = 1
     # run settings
