@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import pdvc
-from pdvc.calibration import _pipeline, _select, resolve_stages
+from pdvc.calibration import _driver, _pipeline, _select, resolve_stages
 from pdvc.calibration._select import ModelChoice
 from pdvc.io._config import ConfigError
 from tests.correlation.cases import make_case
@@ -93,15 +93,20 @@ def test_the_geometry_whose_reconstruction_predicts_better_is_returned(case, mon
     monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
     monkeypatch.setattr(_select, "cross_validated_misfit", misfit)
     monkeypatch.setattr(_pipeline, "calibrate", calibrate)
+    # subsets of >= 8 views here (15 by default), so that the 24 views of each comparison volume make 3 of them, where
+    # the rounds' rule (>= 30 views) makes 1
+    monkeypatch.setattr(_driver, "NONNEG_MIN_SUBSET_VIEWS", 8)
     g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
     before = p.copy()
     res = pdvc.calibrate(p, g, vg, jolts=False, rings="off", zingers="off", checkpoint=lambda state: None)
     assert np.array_equal(p, before)
     # the precession recipe, on the data as the first run treated them, its own run (no checkpoints, no third run)
     assert calls == [dict(recipe="precession", rings="off", zingers="off", second_run="off", checkpoint=None, jolts=False)]
-    # one comparison of the two geometries, at the default's coarsest scale, by ordered subsets of >= 30 views, the
-    # residual as it is (the clean scan fitted no background per view)
-    assert seen == [(2, 1, None, 1, None)]
+    # one comparison of the two geometries, at the default's coarsest scale, each volume by at most SECOND_RUN_SUBSETS
+    # ordered subsets (a single fit, as the short scans' refining round), the residual as it is (the clean scan fitted
+    # no background per view)
+    assert _pipeline.SECOND_RUN_SUBSETS == 6 and _driver.nonneg_subsets(24) == 1
+    assert seen == [(2, 1, None, 3, None)]
     assert res.options["recipe"] == ("precession" if taken else "default")
     assert ("precession recipe's geometry is returned" in res.options["second_run"]) is taken
     assert res.options["second_run"] in res.options["model"]

@@ -37,7 +37,8 @@ from ._driver import (PosesResult, correlation_volume, data_at_scale, hold_verti
                       point_moves, reconstruct, refined_grid, run_stages, stage_background)
 from ._outer import gauge_text
 from ._select import with_model
-from ._stages import _RECIPE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS, Stage, StageError, recipe_stages
+from ._stages import (_RECIPE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS, NONNEG_REFINE_SUBSETS, Stage, StageError,
+                      recipe_stages)
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -661,6 +662,9 @@ SECOND_RUN_COARSE_ROUNDS = NONNEG_COARSE_ROUNDS * _RECIPE_ROUNDS["precession"]
 #: rounds at 0.213 px, where the run goes on to 0.019 px (docs/method.md §5.27). At the finest scale it stays: on the
 #: 48^3 precession_drift case it stops a walk that the cross-validation would have taken (§5.12)
 SECOND_RUN_COARSE_GUARDS = ("consistency",)
+#: the comparison's volumes (one nonneg_ls fit per set of views and geometry, no rounds): at most this many ordered
+#: subsets of at least NONNEG_MIN_SUBSET_VIEWS views each, as the short scans' refining round (docs/method.md §5.52)
+SECOND_RUN_SUBSETS = NONNEG_REFINE_SUBSETS
 
 
 #: model fields that make the user's model and volume: given, the default's run is the user's and runs alone
@@ -820,9 +824,10 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     background = drv.background if isinstance(drv.background, int) else None
 
     def misfit(geometries):
-        # each volume by ordered subsets, as the calibration's own (the verdicts of the plain iteration within 0.01 %)
+        # each volume by ordered subsets (the verdicts of the plain iteration within 0.01 %; more subsets than the
+        # rounds' own, a single fit cannot accumulate their lean: docs/method.md §5.52)
         return cross_validated_misfit(p, vol_geom, geometries, scale=max(scales), weights=weights, background=background,
-                                      subsets=nonneg_subsets(geom.n_views // 2), backend=given.get("backend", "auto"))
+                                      subsets=nonneg_subsets(geom.n_views // 2, SECOND_RUN_SUBSETS), backend=given.get("backend", "auto"))
 
     def failed(text, t_run, why):
         verdict = f"{text} failed after {t_run:.1f} s ({why}): the default's geometry is kept"
