@@ -827,7 +827,8 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
         # each volume by ordered subsets (the verdicts of the plain iteration within 0.01 %; more subsets than the
         # rounds' own, a single fit cannot accumulate their lean: docs/method.md §5.52)
         return cross_validated_misfit(p, vol_geom, geometries, scale=max(scales), weights=weights, background=background,
-                                      subsets=nonneg_subsets(geom.n_views // 2, SECOND_RUN_SUBSETS), backend=given.get("backend", "auto"))
+                                      subsets=nonneg_subsets(geom.n_views // 2, SECOND_RUN_SUBSETS),
+                                      backend=given.get("backend", "auto"))
 
     def failed(text, t_run, why):
         verdict = f"{text} failed after {t_run:.1f} s ({why}): the default's geometry is kept"

@@ -413,7 +413,7 @@ NONNEG_COARSE_ROUNDS = 2
 NONNEG_FINE_ROUNDS = 1
 # ... whose volume is fitted by 6 ordered subsets instead of the rounds' 3: one round cannot accumulate the lean of
 # each subset toward its own views that several rounds did (the 180-degree stand-in's refining nonneg_ls 20.4 -> 10.4 s,
-# the tuning and fresh two-scale half turns and cone-beam short scans within 0.0003 px per case; docs/method.md §5.52)
+# the tuning and fresh two-scale half turns and cone-beam short scans within 0.0008 px per case; docs/method.md §5.52)
 NONNEG_REFINE_SUBSETS = 6
 
 # the default recipe's refinement (docs/method.md §5.22): rounds of the precession model on non-negative
