@@ -495,6 +495,7 @@ def run_case(c: Case) -> dict:
                    worse=True)
         return row
     row["time_s"] = time.perf_counter() - t0
+    row["rounds"] = len(res.history)  # the returned calibration's rounds, over its stages
     row["err_pdvc"] = err(res.geometry)
     # a calibration that fitted worse than nominal returns the nominal geometry; how far the one it
     # rejected was from the truth says whether the check threw away a better geometry
