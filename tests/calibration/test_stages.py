@@ -29,7 +29,7 @@ from pdvc.calibration import (
     stages_from_dicts,
     stages_to_dicts,
 )
-from pdvc.calibration._stages import NONNEG_REFINE_SUBSETS, REFINE_ROUNDS
+from pdvc.calibration._stages import FULL_TURN_FINE_ROUNDS, NONNEG_REFINE_SUBSETS, REFINE_ROUNDS
 from pdvc.io import ConfigError, load_config, write_config
 
 
@@ -124,6 +124,28 @@ def test_the_default_first_scale_stops_at_its_first_worse_reconstruction_on_full
     assert tol(geom=half) == tol() == [Stage().diverge_tol]
     assert tol(geom=full, recipe="precession") == [Stage().diverge_tol]
     assert tol(geom=full, diverge_tol=0.02) == [0.02]
+
+
+def test_the_default_finest_scale_refines_by_few_rounds_on_full_turns_only():
+    # fine_rounds: the finest scale's model stage runs that many rounds, a refinement (until "rounds"); a user's
+    # max_outer wins, and one scale has no finer one
+    big = recipe_stages("default", (1024, 1024), fine_rounds=1)
+    assert [(s.name, s.scale, s.rounds, s.until) for s in big] == [
+        ("warmup", 4, 1, "rounds"), ("model", 4, 9, "converged"), ("model", 2, 1, "rounds"), ("jolts", 2, 5, "rounds")]
+    assert [s.rounds for s in recipe_stages("default", (1024, 1024), fine_rounds=1, max_outer=4)] == [1, 3, 4, 5]
+    assert [s.rounds for s in recipe_stages("default", (76, 89), fine_rounds=1)] == [1, 9, 5]
+    for bad in (0, 1.5, True, "2"):
+        with pytest.raises(StageError, match="fine_rounds"):
+            recipe_stages("default", (1024, 1024), fine_rounds=bad)
+    # resolve_stages sets FULL_TURN_FINE_ROUNDS with strict_first_scale: the default recipe on a full turn, where the
+    # precession recipe's second run follows; a half turn and the precession recipe keep the recipe's rounds
+    rounds = lambda **kw: [s.rounds for s in resolve_stages((1024, 1024), **kw) if s.name == "model"]  # noqa: E731
+    full = pdvc.circular_cone(np.linspace(0, 2 * np.pi, 90, endpoint=False), sod=2000.0, odd=1000.0,
+                              det_shape=(1024, 1024), pixel=1.5)
+    half = pdvc.parallel(np.linspace(0, np.pi, 90, endpoint=False), det_shape=(1024, 1024), pixel=1.0)
+    assert rounds(geom=full, scales=(4, 2)) == [9, FULL_TURN_FINE_ROUNDS]
+    assert rounds(geom=half, scales=(4, 2)) == rounds(scales=(4, 2)) == [9, 10]
+    assert rounds(geom=full, scales=(4, 2), recipe="precession") == [7, 8]
 
 
 def test_the_refinement_is_an_option_of_the_default_recipe_with_its_own_model_and_volume():

@@ -37,8 +37,8 @@ from ._driver import (PosesResult, correlation_volume, data_at_scale, hold_verti
                       point_moves, reconstruct, refined_grid, run_stages, stage_background)
 from ._outer import gauge_text
 from ._select import with_model
-from ._stages import (_RECIPE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS, NONNEG_REFINE_SUBSETS, Stage, StageError,
-                      recipe_stages)
+from ._stages import (_RECIPE_ROUNDS, FULL_TURN_FINE_ROUNDS, MAX_CORRELATION_VOXELS, NONNEG_COARSE_ROUNDS,
+                      NONNEG_REFINE_SUBSETS, Stage, StageError, recipe_stages)
 
 log = logging.getLogger("pdvc.calibration")
 
@@ -169,8 +169,9 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
     With ``geom`` and automatic ``scales``, a parallel-beam scan leaves out the finest scales its views' distinct
     directions undersample (:func:`_direction_limited_scales`); why goes to ``notes`` (a list), or to the log. With
     ``geom``, the default recipe on a full turn stops its first scale at the first worse reconstruction
-    (``strict_first_scale``), and a parallel-beam scan's FDK/FBP stages get ``oversample_by = "auto"`` unless it is
-    given (:func:`_spline_oversampled`); neither with ``region_of_interest`` (a scan that ``calibrate`` found
+    (``strict_first_scale``) and refines at its finest scale by ``FULL_TURN_FINE_ROUNDS`` rounds (§5.53), and a
+    parallel-beam scan's FDK/FBP stages get ``oversample_by = "auto"`` unless it is given
+    (:func:`_spline_oversampled`); neither with ``region_of_interest`` (a scan that ``calibrate`` found
     truncated laterally: no second run follows, and material lies outside the volume; ``docs/method.md`` §5.50).
     """
     try:
@@ -186,14 +187,16 @@ def resolve_stages(det_shape, *, vol_shape=None, recipe="default", stages=None, 
         # precession recipe's second run follows there, and the rounds past the best one only crept (§5.50)
         strict = (recipe == "default" and geom is not None and not region_of_interest
                   and opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION)
+        # ... and its finest scale refines by FULL_TURN_FINE_ROUNDS rounds (§5.53)
+        fine = FULL_TURN_FINE_ROUNDS if strict else None
         out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=scales, max_outer=max_outer, warmup=warmup,
-                            strict_first_scale=strict, **model)
+                            strict_first_scale=strict, fine_rounds=fine, **model)
         if geom is not None and isinstance(scales, str) and scales == "auto":
             kept, why = _direction_limited_scales(geom, out)
             if why:
                 notes.append(why) if notes is not None else log.info(why)
                 out = recipe_stages(recipe, det_shape, vol_shape=vol_shape, scales=kept, max_outer=max_outer,
-                                    warmup=warmup, strict_first_scale=strict, **model)
+                                    warmup=warmup, strict_first_scale=strict, fine_rounds=fine, **model)
         if geom is not None and geom.kind == "parallel" and model.get("oversample_by") is None and not region_of_interest:
             out = tuple(_spline_oversampled(st) for st in out)
         if isinstance(scales, str) and scales == "auto" and vol_shape is not None and model.get("oversample") is None:

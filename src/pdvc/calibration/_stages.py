@@ -415,6 +415,10 @@ NONNEG_FINE_ROUNDS = 1
 # each subset toward its own views that several rounds did (the 180-degree stand-in's refining nonneg_ls 20.4 -> 10.4 s,
 # the tuning and fresh two-scale half turns and cone-beam short scans within 0.0008 px per case; docs/method.md §5.52)
 NONNEG_REFINE_SUBSETS = 6
+# the default recipe on a full turn over several scales (FDK volumes): the finest scale refines by this many rounds (a
+# round on its grid costs ~10 coarse ones; the precession recipe's second run follows there, and its rounds crept by
+# a few hundredths of a pixel and were then discarded by the finer scale's guard; docs/method.md §5.53)
+FULL_TURN_FINE_ROUNDS = 1
 
 # the default recipe's refinement (docs/method.md §5.22): rounds of the precession model on non-negative
 # least-squares volumes at the coarsest scale, from the poses the model stages kept
@@ -423,7 +427,8 @@ REFINE_ROUNDS = 4
 
 def recipe_stages(
     recipe: str = "default", det_shape=None, *, vol_shape=None, scales="auto", max_outer: Optional[int] = None, warmup: int = 1,
-    warmup_basis: str = "drift", jolts: bool = True, refine: bool = False, strict_first_scale: bool = False, **model,
+    warmup_basis: str = "drift", jolts: bool = True, refine: bool = False, strict_first_scale: bool = False,
+    fine_rounds: Optional[int] = None, **model,
 ) -> tuple:
     """The stage list of a named recipe.
 
@@ -478,6 +483,13 @@ def recipe_stages(
         sets it for the default recipe on full turns, where the precession
         recipe's second run follows: the rounds past the best one crept there
         without changing what is returned (``docs/method.md`` §5.50).
+    fine_rounds : int, optional
+        Over several scales (and unless ``max_outer`` is given): the rounds of
+        the finest scale's model stage, a refinement of what the coarser
+        scales measured (``until = "rounds"``), where fewer than the recipe's.
+        None: the recipe's. :func:`pdvc.calibrate` sets
+        ``FULL_TURN_FINE_ROUNDS`` with ``strict_first_scale``
+        (``docs/method.md`` §5.53).
     **model
         Overrides of the model stage's fields (``basis``, ``frame``,
         ``fixed``, ``method``, ``reconstruct``, ``oversample``, ``tol_px``,
@@ -499,6 +511,9 @@ def recipe_stages(
     n_outer = _RECIPE_ROUNDS[recipe] if max_outer is None else max_outer
     if not isinstance(n_outer, (int, np.integer)) or isinstance(n_outer, bool) or n_outer < 1:
         raise StageError(f"max_outer must be a positive int, got {max_outer!r}")
+    if fine_rounds is not None and (not isinstance(fine_rounds, (int, np.integer)) or isinstance(fine_rounds, bool)
+                                    or fine_rounds < 1):
+        raise StageError(f"fine_rounds must be a positive int or None, got {fine_rounds!r}")
     if not isinstance(warmup, (int, np.integer)) or isinstance(warmup, bool) or warmup < 0:
         raise StageError(f"warmup must be an int >= 0, got {warmup!r}")
     if warmup_basis not in ("drift", "model"):
@@ -530,6 +545,8 @@ def recipe_stages(
     nonneg = isinstance(base.reconstruct, str) and base.reconstruct == "nonneg_ls"
     if recipe == "default" and nonneg and len(sched) > 1 and max_outer is None:
         rounds = [NONNEG_COARSE_ROUNDS * n_outer] * (len(sched) - 1) + [NONNEG_FINE_ROUNDS]
+    elif fine_rounds is not None and len(sched) > 1 and max_outer is None:
+        rounds[-1] = min(rounds[-1], int(fine_rounds))
 
     def at(s: int) -> Stage:  # the model stage at scale s, its oversampling capped there
         return base.replace(oversample=over[s]) if s in over else base
