@@ -416,8 +416,8 @@ NONNEG_FINE_ROUNDS = 1
 # the tuning and fresh two-scale half turns and cone-beam short scans within 0.0008 px per case; docs/method.md §5.52)
 NONNEG_REFINE_SUBSETS = 6
 # the default recipe on a full turn over several scales (FDK volumes): the finest scale refines by this many rounds (a
-# round on its grid costs ~10 coarse ones; the precession recipe's second run follows there, and its rounds crept by
-# a few hundredths of a pixel and were then discarded by the finer scale's guard; docs/method.md §5.53)
+# round on its grid costs ~10 coarse ones; the precession recipe's second run follows there, and the rounds after the
+# first crept by a few hundredths of a pixel until the finer scale's guard discarded one; docs/method.md §5.53)
 FULL_TURN_FINE_ROUNDS = 1
 
 # the default recipe's refinement (docs/method.md §5.22): rounds of the precession model on non-negative
