@@ -166,13 +166,18 @@ def _banded1(x, start, W, out):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, cache=True)
 def _banded2(x, start, W, out):  # pragma: no cover - compiled
+    # k outside j: the loop over a row's outputs is the inner one (each output's sum still taken in the order of k,
+    # so the result is the same to the bit); measured on 64 x 64 x 64 -> 128 along the last axis, 2 threads, AMD
+    # EPYC: 1.35 -> 0.79 ms (k inside: a short reduction per output)
     for a in numba.prange(out.shape[0]):
         for b in range(out.shape[1]):
-            for j in range(out.shape[2]):
-                acc = np.float32(0.0)
-                for k in range(W.shape[1]):
-                    acc += W[j, k] * x[a, b, start[j] + k]
-                out[a, b, j] = acc
+            row = out[a, b]
+            xr = x[a, b]
+            for j in range(row.shape[0]):
+                row[j] = 0.0
+            for k in range(W.shape[1]):
+                for j in range(row.shape[0]):
+                    row[j] += W[j, k] * xr[start[j] + k]
 
 
 def _along(band: tuple[np.ndarray, np.ndarray], x: np.ndarray, axis: int) -> np.ndarray:
@@ -397,6 +402,13 @@ def _spline_maps(vol_geom: VolumeGeometry, f: int):
     """(coarse shape, coarse grid, U, Uᵀ): the cubic B-spline on a grid ``f`` times coarser, sampled on ``vol_geom``."""
     shape = tuple(n // f for n in vol_geom.shape)
     vg_c = VolumeGeometry(shape, voxel_size=tuple(s * f for s in vol_geom.voxel_size), offset=vol_geom.offset)
+    if f == 1:
+        # the voxels themselves are the unknowns (spline_upsampling_matrix(n, 1) is the identity): no pass over the
+        # volume (six per iteration, 4 % of the 180-degree stand-in's calibration)
+        def same(c):
+            return c
+
+        return shape, vg_c, same, same
     mats = [spline_upsampling_matrix(n, f) for n in shape]
     bands = [_banded(M) for M in mats]
     bands_t = [_banded(M.T) for M in mats]
