@@ -248,3 +248,45 @@ def test_a_second_run_that_fails_keeps_the_first_runs_result(case, monkeypatch):
     assert res.options["recipe"] == "default" and res.status == alone.status
     assert np.allclose(res.geometry.vectors, alone.geometry.vectors)
     assert "failed" in res.options["second_run"] and "could not run" in res.options["model"]
+
+
+@pytest.mark.parametrize("misfits, taken", [((1.0, 0.99), True), ((1.0, 1.0001), False)])
+def test_on_a_large_scan_the_comparison_comes_before_the_defaults_finer_scale(case, monkeypatch, misfits, taken):
+    # the finest scale above the cap (lowered, as above): the precession recipe runs and is compared with the default's
+    # geometry at the end of its scale-2 stages, before its scale-1 stages (docs/method.md §5.55). Taken: the default
+    # never runs at scale 1; kept: the default goes on exactly as it runs alone
+    monkeypatch.setattr(_pipeline, "SECOND_RUN_MAX_VOXELS", 30**3)
+    monkeypatch.setattr(_pipeline, "_second_run_reason", lambda *a: (True, ""))
+    compared = []
+
+    def misfit(p, vg, gs, **kw):
+        compared.append(gs[0])
+        events.append(("compare", kw["scale"]))
+        return np.array(misfits[:len(gs)], float)
+
+    monkeypatch.setattr(_select, "cross_validated_misfit", misfit)
+    events = []
+
+    def progress(info):
+        if info["event"] in ("stage", "second_run"):
+            events.append((info["event"], info.get("scale")))
+
+    g, p, vg = case.scan.geometry, case.scan.projections, case.vol_geom
+    kw = dict(scales=(2, 1), jolts=False, rings="off", zingers="off", progress=progress)
+    res = pdvc.calibrate(p, g, vg, **kw)
+    first = events.index(("second_run", None))
+    assert ("stage", 1) not in events[:first]  # nothing at scale 1 before the comparison
+    assert events[first:].count(("compare", 2)) == 1
+    assert ("stage", 1) in events[first:] or taken  # ... and the default's scale 1 only where its geometry is kept
+    assert (("stage", 1) in events) is (not taken)
+    assert "before the default's scale 1" in res.options["second_run"]
+    assert ("precession recipe's geometry is returned" in res.options["second_run"]) is taken
+    assert res.options["recipe"] == ("precession" if taken else "default")
+    assert {"second run (precession recipe)", "second run (comparison)"} <= set(res.timings)
+    assert (res.timings.get("first run (default recipe)", 0) > 0) is taken
+    # the default's geometry compared is the one its scale-2 stages reached, not the nominal one
+    assert not np.allclose(compared[0].vectors, g.vectors)
+    if not taken:
+        alone = pdvc.calibrate(p, g, vg, **dict(kw, second_run="off", progress=None))
+        np.testing.assert_array_equal(res.geometry.vectors, alone.geometry.vectors)
+        assert res.status == alone.status

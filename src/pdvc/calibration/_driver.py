@@ -582,6 +582,7 @@ def run_stages(
     held: tuple = (),
     known_jolts=(),
     vertical=None,
+    before_stage: Optional[Callable[[int, "DriverResult"], bool]] = None,
 ) -> DriverResult:
     """Run ``stages`` in order from ``poses``; return the poses kept and why it stopped.
 
@@ -628,6 +629,10 @@ def run_stages(
         sample itself gives depends on the poses' rotations and on their gauge
         (``docs/method.md`` §5.36); held as a number, it drifted from the
         truth as the rounds moved the rest.
+    before_stage : callable, optional
+        ``before_stage(i, result)`` before every stage ``i`` after the first this call runs, with the result the run
+        would return if it ended there; when it returns true the run ends there and returns that result (the
+        precession recipe's comparison before the default's finer scales: ``docs/method.md`` §5.55).
     """
     stages = tuple(stages)
     if not stages or not all(isinstance(s, Stage) for s in stages):
@@ -662,7 +667,27 @@ def run_stages(
     guard_volume = fit_volume = None
     last = None  # (stage, (poses, volume)) of the stage before, where the next is a jolt stage (it measures views on it)
     i0, r0 = int(start[0]), int(start[1])
+
+    def result(i_end):
+        """What the run returns when it ends before stage ``i_end``."""
+        # the run's status is that of the last stage that had to converge (warm-ups and refinements run their rounds)
+        musts = [o for o, s in zip(outcomes, stages[i0:i_end]) if s.until == "converged"]
+        last = musts[-1] if musts else outcomes[-1] if outcomes else StageOutcome(
+            stages[i_end - 1].name, stages[i_end - 1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0
+        )
+        return DriverResult(
+            poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
+            correlation=kept, guard_volume=guard_volume,
+            fit_volume=fit_volume if fit_volume is not None and fit_volume[0] is poses else None,
+            background=ctx.auto_background, offset_sigma=ctx.offset_sigma, model_choice=ctx.model_choice,
+        )
+
     for i in range(i0, len(stages)):
+        if before_stage is not None and i > i0:
+            partial = result(i)
+            if before_stage(i, partial):
+                log.info("the run ends before stage %d (%s, scale %d)", i, stages[i].name, stages[i].scale)
+                return partial
         stage, first, primed = stages[i], (r0 if i == i0 else 0), None
         t0 = time.perf_counter()  # the stage's time holds its model choice
         if stage.candidates and ctx.model_choice is None:
@@ -698,17 +723,7 @@ def run_stages(
         if checkpoint is not None:
             checkpoint(dict(poses=poses, history=[dict(h) for h in history], stage_index=i + 1, rounds_done=0))
         log.info("stage %d (%s, scale %d): %s after %d round(s)", i, stage.name, stage.scale, status.message, run.n_rounds)
-    # the run's status is that of the last stage that had to converge (warm-ups and refinements run their rounds)
-    musts = [o for o, s in zip(outcomes, stages[i0:]) if s.until == "converged"]
-    last = musts[-1] if musts else outcomes[-1] if outcomes else StageOutcome(
-        stages[-1].name, stages[-1].scale, Status.ROUNDS_DONE, Status.ROUNDS_DONE.message, 0, 0.0
-    )
-    return DriverResult(
-        poses=poses, status=last.status, message=last.message, history=tuple(history), stages=tuple(outcomes),
-        correlation=kept, guard_volume=guard_volume,
-        fit_volume=fit_volume if fit_volume is not None and fit_volume[0] is poses else None,
-        background=ctx.auto_background, offset_sigma=ctx.offset_sigma, model_choice=ctx.model_choice,
-    )
+    return result(len(stages))
 
 
 class _StageRun:

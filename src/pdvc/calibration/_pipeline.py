@@ -462,7 +462,9 @@ def calibrate(
         the ``precession`` recipe runs as well, at the default's scales
         whose correlation grid holds at most ``SECOND_RUN_MAX_VOXELS`` (on
         a large scan the coarser ones only, with
-        ``SECOND_RUN_COARSE_ROUNDS`` rounds; §5.27; where none holds that,
+        ``SECOND_RUN_COARSE_ROUNDS`` rounds, compared with the default's
+        geometry before its finer scales, which run only if that is kept:
+        §5.27, §5.55; where none holds that,
         at a coarser scale than the default's, §5.28), and the geometry whose
         reconstruction predicts the views it was not made from better by
         more than ``SECOND_RUN_GAIN`` (:func:`cross_validated_misfit`) is
@@ -572,14 +574,45 @@ def calibrate(
         if checkpoint is not None:
             checkpoint(dict(state, offset_px=offset_px, rings=rings, held=list(held)))
 
+    # the precession recipe's second run at the coarse scales only (the finer ones' grids above the cap): compared
+    # before the default's finer scales, which run only if the default's geometry is kept (docs/method.md §5.55)
+    deferred: dict = {}
+    kept_scales, dropped_scales = _second_run_scales(stage_list, vol_geom, geom.det_shape)
+
+    def compare_first(i, partial):
+        """run_stages' ``before_stage``: at the default's first stage of a scale the second run leaves out, the
+        precession recipe runs and is compared with the default's geometry so far; true: its geometry is returned."""
+        if deferred or stage_list[i].scale not in dropped_scales or not any(st.scale in kept_scales for st in stage_list[:i]):
+            return False
+        deferred["t_first"] = time.perf_counter() - t_start
+        if not _second_run_reason(recipe, partial, geom, given, stage_list, vol_geom, p_out is not None)[0]:
+            deferred["verdict"] = None  # no second run: the end of the run says why
+            return False
+        later = ", ".join(str(sc) for sc in sorted({st.scale for st in stage_list[i:]}, reverse=True))
+        alt, take, verdict, t_alt = _precession_opinion(geom.apply(partial.poses), projections, geom, vol_geom, p, weights,
+                                                        stage_list, partial, rings, given, emit, before=later)
+        deferred.update(verdict=verdict, timings=t_alt, alt=alt if take else None)
+        return take
+
+    defer = (second_run == "auto" and recipe == "default" and not resume and DEFER_SECOND_RUN and bool(kept_scales)
+             and bool(dropped_scales))
+
     t0 = time.perf_counter()
     drv = run_stages(
         p, geom, vol_geom, stage_list, poses=poses, noise_variance=gamma2, weights=weights, fix_scale=fix_scale,
         times=times, center=center, backend=backend, start=start, history=history, checkpoint=state_checkpoint,
         progress=emit, row_sums=row_sums, held=held, known_jolts=known_jolts,
         vertical=vm.translation if vm is not None and "tz" in held else None,
+        before_stage=compare_first if defer else None,
     )
     timings["stages"] = time.perf_counter() - t0
+    if deferred.get("alt") is not None:
+        alt, verdict = deferred["alt"], deferred["verdict"]
+        res = _replace(alt, options=dict(alt.options, model=f"{drv.model_choice.text()}; {verdict}", second_run=verdict),
+                       timings=dict(alt.timings, **deferred["timings"], **{"first run (default recipe)": deferred["t_first"]}),
+                       elapsed_s=time.perf_counter() - t_start)
+        _log_done(res)
+        return res
     for i, o in enumerate(drv.stages):
         timings[f"stage {i + start[0]} ({o.name}, scale {o.scale})"] = o.elapsed_s
     status, message = _too_large(drv, offset_px, stage_list)
@@ -631,13 +664,18 @@ def calibrate(
                     "fixed pattern (docs/method.md)", 100 * share)
     if second_run == "auto":
         res = _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, recipe, rings, given, emit, t_start,
-                          roi_scan=p_out is not None)
+                          roi_scan=p_out is not None,
+                          decided=(deferred["verdict"], deferred["timings"]) if deferred.get("verdict") else None)
+    _log_done(res)
+    return res
+
+
+def _log_done(res) -> None:
     log.info(
         "calibration done in %.1f s (%s): SNR %.2f -> %.2f dB, entropy %.3f -> %.3f bits",
         res.elapsed_s, res.status.name.lower(), float(np.mean(res.snr_before)), float(np.mean(res.snr_after)),
         res.entropy_before, res.entropy_after,
     )
-    return res
 
 
 #: ``second_run = "auto"``: the precession recipe's geometry is returned when its reconstruction predicts the views
@@ -668,6 +706,12 @@ SECOND_RUN_COARSE_GUARDS = ("consistency",)
 #: the comparison's volumes (one nonneg_ls fit per set of views and geometry, no rounds): at most this many ordered
 #: subsets of at least NONNEG_MIN_SUBSET_VIEWS views each, as the short scans' refining round (docs/method.md §5.52)
 SECOND_RUN_SUBSETS = NONNEG_REFINE_SUBSETS
+
+
+#: ... and where it runs at the coarser scales only, it runs (and is compared) before the default's finer scales, which
+#: run only where the default's geometry is kept: the precession recipe's geometry returned otherwise saves them
+#: (docs/method.md §5.55)
+DEFER_SECOND_RUN = True
 
 
 #: model fields that make the user's model and volume: given, the default's run is the user's and runs alone
@@ -771,7 +815,7 @@ def _second_run_scales(stage_list, vol_geom, det_shape) -> tuple:
 
 
 def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, recipe, rings, given, emit, t_start,
-                roi_scan=False):
+                roi_scan=False, decided=None):
     """The precession recipe run as well, and the geometry that predicts the views left out better returned.
 
     The default recipe's model choice scores the models on one volume, which
@@ -782,15 +826,42 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     default by more than ``SECOND_RUN_TWICE_LOSS`` runs again with the
     lab-frame ``drift:2`` basis (a precession twice a turn, which neither
     model holds), and that run is compared instead.
-    """
-    from ._select import cross_validated_misfit
 
+    ``decided``: (verdict, timings) of the comparison made before the default's finer scales, which kept the default
+    (``compare_first`` in :func:`calibrate`): only reported.
+    """
+    if decided is not None:
+        verdict, timings_alt = decided
+        return _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {verdict}", second_run=verdict),
+                        timings=dict(res.timings, **timings_alt), elapsed_s=time.perf_counter() - t_start)
     run, why_not = _second_run_reason(recipe, drv, geom, given, stage_list, vol_geom, roi_scan)
     if not run:
         if why_not:
             log.info(why_not)
             res = _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {why_not}"))
         return res
+    alt, take, verdict, timings_alt = _precession_opinion(res.geometry, projections, geom, vol_geom, p, weights,
+                                                          stage_list, drv, rings, given, emit)
+    if alt is None:
+        return _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {verdict}",
+                                          second_run=verdict), elapsed_s=time.perf_counter() - t_start)
+    chosen = alt if take else res
+    timings = dict(chosen.timings, **timings_alt)
+    if take:
+        timings["first run (default recipe)"] = res.elapsed_s
+    model_text = f"{res.options.get('model', '')}; {verdict}"
+    return _replace(chosen, options=dict(chosen.options, model=model_text, second_run=verdict), timings=timings,
+                    elapsed_s=time.perf_counter() - t_start)
+
+
+def _precession_opinion(default_geometry, projections, geom, vol_geom, p, weights, stage_list, drv, rings, given, emit,
+                        before=""):
+    """(result, take it, verdict, timings): the precession recipe's calibration and whether its geometry predicts the
+    views left out better than ``default_geometry`` (:func:`_second_run`); result None when its run failed.
+
+    ``before``: the default's finer scales not yet run, when the comparison comes before them (§5.55)."""
+    from ._select import cross_validated_misfit
+
     scales, dropped = _second_run_scales(stage_list, vol_geom, geom.det_shape)
     coarse = ""
     if dropped:
@@ -799,6 +870,8 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
         coarse = (f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only{coarser} (the "
                   f"correlation grid of scale {max(dropped)}, {'x'.join(map(str, grid.shape))}, is above "
                   f"{_voxels(SECOND_RUN_MAX_VOXELS)} voxels)")
+    if before:
+        coarse += f", before the default's scale{'s' if ',' in before else ''} {before}"
     log.info("second run: the default kept the %s model; the precession recipe runs as well%s, and the geometry whose "
              "reconstruction predicts the views left out better is kept", drv.model_choice.winner,
              coarse or f" (scales {scales})")
@@ -833,17 +906,14 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
                                       subsets=nonneg_subsets(geom.n_views // 2, SECOND_RUN_SUBSETS),
                                       backend=given.get("backend", "auto"))
 
-    def failed(text, t_run, why):
-        verdict = f"{text} failed after {t_run:.1f} s ({why}): the default's geometry is kept"
-        log.warning("second run: %s", verdict)
-        return _replace(res, options=dict(res.options, model=f"{res.options.get('model', '')}; {verdict}",
-                                          second_run=verdict), elapsed_s=time.perf_counter() - t_start)
-
     alt, t_alt, why = precession_run(None)
     if alt is None:
-        return failed("then the precession recipe was run as well and", t_alt, why)
+        verdict = (f"then the precession recipe was run as well and failed after {t_alt:.1f} s ({why}): the default's "
+                   f"geometry is kept")
+        log.warning("second run: %s", verdict)
+        return None, False, verdict, {"second run (precession recipe)": t_alt}
     t0 = time.perf_counter()
-    m = misfit([res.geometry, alt.geometry])
+    m = misfit([default_geometry, alt.geometry])
     t_cv = time.perf_counter() - t0
 
     def better(m1):  # the fraction by which a misfit is below the default's
@@ -877,16 +947,11 @@ def _second_run(res, projections, geom, vol_geom, p, weights, stage_list, drv, r
     take = bool(alt.status.success and gain > SECOND_RUN_GAIN)
     verdict += (f"; comparisons {t_cv:.1f} s; more than {100 * SECOND_RUN_GAIN:.2g} % better needed"
                 f"{'' if alt.status.success else ', and it did not succeed: ' + alt.message}: ")
-    chosen = alt if take else res
     verdict += f"the precession recipe's geometry is returned{basis}" if take else "the default's geometry is kept"
     log.info("second run: %s", verdict)
     emit(dict(event="model", text=verdict, elapsed_s=sum(timings_alt.values()) + t_cv))
-    timings = dict(chosen.timings, **timings_alt, **{"second run (comparison)": t_cv})
-    if take:
-        timings["first run (default recipe)"] = res.elapsed_s
-    model_text = f"{res.options.get('model', '')}; {verdict}"
-    return _replace(chosen, options=dict(chosen.options, model=model_text, second_run=verdict), timings=timings,
-                    elapsed_s=time.perf_counter() - t_start)
+    timings_alt["second run (comparison)"] = t_cv
+    return alt, take, verdict, timings_alt
 
 
 def _replace(res, **kw):
