@@ -504,7 +504,7 @@ def _sampled_lipschitz(vol_geom, geom, shape, up, up_t, M, backend) -> float:
 def nonneg_ls_lipschitz(vol_geom: VolumeGeometry, geom: VectorGeometry, *, coarsen: int = 1, precondition: bool = False,
                         backend: str = "auto") -> float:
     """The largest eigenvalue ``L`` of ``UᵀΠᵀΠU`` that :func:`nonneg_ls` steps by (3 power iterations from ones, on
-    every k-th view when there are more than ``2 LIPSCHITZ_VIEWS``, scaled to all of them).
+    every k-th view when there are at least ``2 LIPSCHITZ_VIEWS``, scaled to all of them).
 
     With ``precondition``, that of ``M UᵀΠᵀΠU`` (``M`` the ramp of
     :func:`nonneg_ls`).
