@@ -54,6 +54,15 @@ def test_banded_application_equals_the_dense_matrix_product(axis, factor):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
 
 
+def _spline_operator(vg, geom, f):
+    """(coarse shape, coarse grid, U, Π U, Uᵀ Πᵀ) of nonneg_ls over all of ``geom``'s views: the reference its step
+    bound is checked against."""
+    from pdvc.recon._iterative import _spline_maps, _spline_pair
+
+    shape, vg_c, up, up_t = _spline_maps(vg, f)
+    return (shape, vg_c, up, *_spline_pair(vg, geom, up, up_t, "auto"))
+
+
 @pytest.fixture(scope="module")
 def blob_scan():
     vg = pdvc.VolumeGeometry((16, 16, 16))
@@ -176,9 +185,7 @@ def test_nonneg_ls_lipschitz_is_the_top_eigenvalue_and_a_given_one_is_used(blob_
     kw = dict(coarsen=2, n_iter=6)
     np.testing.assert_array_equal(nonneg_ls(p, vg, geom, lipschitz=lip, **kw), nonneg_ls(p, vg, geom, **kw))
     assert not np.array_equal(nonneg_ls(p, vg, geom, lipschitz=3 * lip, **kw), nonneg_ls(p, vg, geom, **kw))
-    from pdvc.recon._iterative import _spline_operator
-
-    shape, _, _, A, AT = _spline_operator(vg, geom, 2, "auto")
+    shape, _, _, A, AT = _spline_operator(vg, geom, 2)
     rng = np.random.default_rng(4)
     for _ in range(3):
         v = rng.standard_normal(shape).astype(np.float32)
@@ -194,10 +201,10 @@ def test_nonneg_ls_lipschitz_is_the_top_eigenvalue_and_a_given_one_is_used(blob_
 def test_the_step_bound_from_ones_is_the_top_eigenvalue_from_below(blob_scan):
     """Three power iterations from the constant vector (the top eigenvector of a non-negative operator is
     non-negative) give the largest eigenvalue of UᵀΠᵀΠU within 1 %, from below."""
-    from pdvc.recon._iterative import _power_iteration, _spline_operator
+    from pdvc.recon._iterative import _power_iteration
 
     vg, vol, geom, p = blob_scan
-    shape, _, _, A, AT = _spline_operator(vg, geom, 2, "auto")
+    shape, _, _, A, AT = _spline_operator(vg, geom, 2)
     lip = nonneg_ls_lipschitz(vg, geom, coarsen=2)
     top = _power_iteration(shape, A, AT, n_iter=40)
     assert 0.99 * top < lip <= top * (1 + 1e-5)
@@ -209,7 +216,7 @@ def test_the_step_bound_from_a_sample_of_the_views_is_the_one_of_all_views(kind)
     over the sample's: within 0.5 % of the power iteration over all views (91 parallel views over 180°, whose sample
     of 31 is not a third of them; a cone full turn of 150 views; 120 views crowded into the first half of the turn),
     and nonneg_ls steps by it."""
-    from pdvc.recon._iterative import LIPSCHITZ_VIEWS, _lipschitz_views, _power_iteration, _spline_operator
+    from pdvc.recon._iterative import LIPSCHITZ_VIEWS, _lipschitz_views, _power_iteration
 
     vg = pdvc.VolumeGeometry((12, 20, 20))
     if kind == "parallel_half_turn":
@@ -223,7 +230,7 @@ def test_the_step_bound_from_a_sample_of_the_views_is_the_one_of_all_views(kind)
     views = _lipschitz_views(geom.n_views)
     assert LIPSCHITZ_VIEWS <= views.size < geom.n_views
     for coarsen in (1, 2):
-        shape, _, _, A, AT = _spline_operator(vg, geom, coarsen, "auto")
+        shape, _, _, A, AT = _spline_operator(vg, geom, coarsen)
         full = _power_iteration(shape, A, AT)
         assert abs(nonneg_ls_lipschitz(vg, geom, coarsen=coarsen) / full - 1) < 0.005
     p = pdvc.forward(gaussian_blob_volume(vg, np.zeros(3), 3.0, 1.0).astype(np.float32), vg, geom)
@@ -278,9 +285,9 @@ def test_the_preconditioned_fit_converges_faster_to_the_same_volume(blob_scan):
     # its step bound is the top eigenvalue of the filtered normal operator, from below but close
     lip = nonneg_ls_lipschitz(vg, geom, precondition=True)
     assert lip != nonneg_ls_lipschitz(vg, geom)
-    from pdvc.recon._iterative import _power_iteration, _ramp_preconditioner, _spline_operator
+    from pdvc.recon._iterative import _power_iteration, _ramp_preconditioner
 
-    shape, vg_c, _, A, AT = _spline_operator(vg, geom, 1, "auto")
+    shape, vg_c, _, A, AT = _spline_operator(vg, geom, 1)
     assert abs(_power_iteration(shape, A, AT, _ramp_preconditioner(shape, vg_c.voxel_size), n_iter=30) / lip - 1) < 0.05
 
 

@@ -396,13 +396,6 @@ def _coarsen_factor(coarsen, vol_geom: VolumeGeometry) -> int:
     return f
 
 
-def _spline_operator(vol_geom: VolumeGeometry, geom: VectorGeometry, f: int, backend: str):
-    """(coarse shape, coarse grid, U, Π U, Uᵀ Πᵀ) of :func:`nonneg_ls` with B-spline unknowns ``f`` times coarser."""
-    shape, vg_c, up, up_t = _spline_maps(vol_geom, f)
-    A, AT = _spline_pair(vol_geom, geom, up, up_t, backend)
-    return shape, vg_c, up, A, AT
-
-
 def _spline_maps(vol_geom: VolumeGeometry, f: int):
     """(coarse shape, coarse grid, U, Uᵀ): the cubic B-spline on a grid ``f`` times coarser, sampled on ``vol_geom``."""
     shape = tuple(n // f for n in vol_geom.shape)
