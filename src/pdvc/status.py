@@ -73,7 +73,8 @@ _MESSAGES = {
     "they confirm it), which match each other's mirror image better about it than about the nominal axis, is "
     "returned (no per-view motion)",
     Status.NOMINAL_HOLDS: "the nominal geometry holds: the calibration moved the sample points by less than the stages' "
-    "tolerance from it (no motion the data measure); the nominal geometry is returned",
+    "tolerance from it, or a little more and predicts the views left out of a reconstruction no better than it (no "
+    "motion the data measure); the nominal geometry is returned",
     Status.MAX_ITER: "not converged: the iteration cap was reached while the poses were still moving",
     Status.NO_DESCENT: "not converged: no damped step lowered chi any further; the last accepted poses are kept",
     Status.DIVERGED: "diverged: no round of the stage made the reconstruction fit the data better; "

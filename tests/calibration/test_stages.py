@@ -364,11 +364,13 @@ def test_the_distance_from_nominal_is_the_rms_displacement_of_the_sample_points_
     assert _moved_from_nominal(geom, vg, Poses(np.zeros((n, 3)), t), True) == pytest.approx(0.0, abs=1e-9)
 
 
-@pytest.mark.parametrize("a, holds", [(0.004, True), (0.05, False)])
+@pytest.mark.parametrize("a, holds", [(0.004, "tol"), (0.05, "predicts"), (0.4, "")])
 def test_stages_that_end_within_tol_px_of_nominal_return_it_as_a_success(small, monkeypatch, tmp_path, a, holds):
     # Stages that end 0.004 px RMS from the nominal geometry (below their tol_px of 0.01 px) measured no motion: the
-    # nominal geometry is returned as a success (NOMINAL_HOLDS), the stages' in rejected_geometry; 0.05 px is a
-    # measurement (here a wrong one, which the SNR check rejects as worse than nominal).
+    # nominal geometry is returned as a success (NOMINAL_HOLDS), the stages' in rejected_geometry. At 0.05 px (below
+    # NEAR_NOMINAL_PX) the stages' geometry, a jitter of every other view, predicts the views left out of a
+    # reconstruction worse than the nominal one: the nominal geometry holds too. 0.4 px is a measurement (here a wrong
+    # one, which the SNR check rejects as worse than nominal).
     from pdvc.calibration import _pipeline
     from pdvc.calibration._pipeline import _moved_from_nominal
     from pdvc.geometry import Poses
@@ -393,12 +395,42 @@ def test_stages_that_end_within_tol_px_of_nominal_return_it_as_a_success(small, 
     assert res.geometry == c.scan.geometry and res.rejected_geometry is not None
     if holds:
         assert res.status == Status.NOMINAL_HOLDS and res.success
-        assert f"{a:.4f} px RMS from the nominal one, less than 0.01 px" in res.message
+        if holds == "tol":
+            assert f"{a:.4f} px RMS from the nominal one, less than 0.01 px" in res.message
+        else:
+            assert f"{a:.4f} px RMS from the nominal one, and its reconstruction predicts the views" in res.message
+            assert "worse than the nominal one's" in res.message and "near-nominal check" in res.timings
         assert np.all(res.poses.translations == 0.0) and np.all(res.snr_after == res.snr_before)
         run = json.loads((tmp_path / "o" / "run.json").read_text())
         assert run["success"] is True and run["status_name"] == "nominal_holds"
     else:
         assert res.status == Status.WORSE_THAN_NOMINAL and not res.success
+
+
+def test_the_near_nominal_check_keeps_a_small_real_motion_and_drops_a_walk():
+    # Known answers, analytic projector: on a scan whose axis is 0.05 px off centre, the true geometry predicts the
+    # views left out of a reconstruction better than the nominal one by more than NEAR_NOMINAL_GAIN (no reason to hold
+    # the nominal one); on a still scan the same 0.05 px offset predicts them worse (the nominal geometry holds).
+    from pdvc.calibration import Stage
+    from pdvc.calibration._pipeline import NEAR_NOMINAL_GAIN, NEAR_NOMINAL_PX, _nominal_predicts_as_well
+    from pdvc.simulate import cast_iron_phantom, simulate_scan, tilted_axis_poses
+
+    n, nv, a = 24, 48, 0.05
+    assert a < NEAR_NOMINAL_PX
+    angles = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+    geom = pdvc.circular_cone(angles, sod=8 * n, odd=4 * n, det_shape=(int(1.2 * n), int(1.4 * n)), pixel=1.5)
+    vg = pdvc.VolumeGeometry((n, n, n))
+    phantom = cast_iron_phantom(0.36 * n, 0.8 * n, n_nodules=3 * n, seed=0)
+    rv, t = tilted_axis_poses(angles, tilt=0.0, offset=(a, 0.0, 0.0))
+    off = geom.apply_poses(rv, t)
+    moving = simulate_scan(phantom, geom, rotvecs=rv, translations=t, i0=2e4, seed=1, supersampling=2).projections
+    still = simulate_scan(phantom, geom, i0=2e4, seed=1, supersampling=2).projections
+    timings = {}
+    assert _nominal_predicts_as_well(moving, geom, vg, off, [Stage()], None, None, "auto", a, timings) == ""
+    assert timings["near-nominal check"] > 0
+    held = _nominal_predicts_as_well(still, geom, vg, off, [Stage()], None, None, "auto", a, {})
+    assert "0.0500 px RMS from the nominal one" in held and "worse than the nominal one's" in held
+    assert f"more than {100 * NEAR_NOMINAL_GAIN:.2g} % better needed" in held
 
 
 def test_final_volume_is_on_the_grid_asked_for_whatever_the_scales(small):
