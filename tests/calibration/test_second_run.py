@@ -50,6 +50,17 @@ def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_
     assert _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), full, {}, two, big) == (True, "")
     assert _pipeline._second_run_scales(two, big, (160, 128)) == ((2,), (1,))  # 128^3 at 2; 256^3 at 1 left out
     assert _pipeline._second_run_scales(st, vg, full.det_shape) == ((1,), ())
+    # many views on a large detector (bench_large.py's 2k scan of 1440 views binned by 4): grids within the voxel cap,
+    # but at scale 4 the rays cross its 64^3 grid in 1440 x 128 x 128 x 64 = 1.5e9 voxel steps, above
+    # SECOND_RUN_MAX_RAY_STEPS (scale 2: 1.2e10): a coarser scale, 8 (1.9e8); 90 views fit at both (docs/method.md §5.57)
+    wide = resolve_stages((512, 512), vol_shape=big.shape)
+    assert sorted({s.scale for s in wide}) == [2, 4]
+    assert _pipeline._second_run_scales(wide, big, (512, 512)) == ((4, 2), ())
+    assert _pipeline._second_run_scales(wide, big, (512, 512), 90) == ((4, 2), ())
+    assert _pipeline._second_run_scales(wide, big, (512, 512), 1440) == ((8,), (4, 2))
+    assert "1440 views' rays cross the 64x64x64 grid in 1.5e+09 voxel steps" in _pipeline._second_run_fits(
+        wide, big, (512, 512), 1440, 4, 4)
+    assert _pipeline._second_run_fits(wide, big, (512, 512), 90, 4, 4) == ""
     # a finest scale whose oversampling the 256^3 cap lowered (docs/method.md §5.29) is judged as the precession
     # recipe would correlate there, at the coarsest stages' 2x: 268 x 320 x 320, left out
     tall = pdvc.VolumeGeometry((134, 160, 160))

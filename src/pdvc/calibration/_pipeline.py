@@ -579,7 +579,7 @@ def calibrate(
     # the precession recipe's second run at the coarse scales only (the finer ones' grids above the cap): compared
     # before the default's finer scales, which run only if the default's geometry is kept (docs/method.md §5.55)
     deferred: dict = {}
-    kept_scales, dropped_scales = _second_run_scales(stage_list, vol_geom, geom.det_shape)
+    kept_scales, dropped_scales = _second_run_scales(stage_list, vol_geom, geom.det_shape, geom.n_views)
 
     def compare_first(i, partial):
         """run_stages' ``before_stage``: at the default's first stage of a scale the second run leaves out, the
@@ -693,6 +693,12 @@ SECOND_RUN_TWICE_ROUNDS = 12
 #: ... and it runs at the default's scales whose correlation grid holds at most this many voxels, at a coarser scale
 #: when none does (the precession recipe's rounds are non-negative least-squares fits on it: 5-10x an FDK round)
 SECOND_RUN_MAX_VOXELS = 200**3
+#: ... and whose views' rays at that scale times the grid's longest edge (the voxels one projection of its
+#: non-negative least-squares iterations walks) are at most this many: the cost grows with the views and the detector
+#: as well as the grid. A 2k scan of 1440 views binned by 4 (bench_large.py: 128^3 at scale 2, 1440 views of 256^2)
+#: walks 1.2e10, its precession recipe's rounds 5 minutes each there; the benchmark suites' scans 3e7-6e8
+#: (docs/method.md §5.57)
+SECOND_RUN_MAX_RAY_STEPS = 1e9
 #: ... where none of the default's scales is below that cap, at a coarser scale than the default's, if the detector has
 #: at least this many columns there (the automatic schedule's coarsest scale keeps 64 or more; docs/method.md §5.28)
 SECOND_RUN_MIN_COLUMNS = 48
@@ -737,10 +743,10 @@ def _second_run_reason(recipe, drv, geom, model, stage_list, vol_geom, roi_scan:
         # field had its 0.042 px geometry replaced by a 0.147 px one that predicted 0.12 % better (docs/method.md §5.26)
         return False, ("the precession recipe was not run as well: on a region-of-interest scan the views left out "
                        "cannot rank two geometries (second_run; docs/method.md §5.26)")
-    if not _second_run_scales(stage_list, vol_geom, geom.det_shape)[0]:
-        grid = _correlation_grid(stage_list, vol_geom, max(st.scale for st in stage_list))
-        return False, (f"the precession recipe was not run as well: its coarsest correlation grid, "
-                       f"{'x'.join(map(str, grid.shape))}, is above {_voxels(SECOND_RUN_MAX_VOXELS)} voxels (second_run); "
+    if not _second_run_scales(stage_list, vol_geom, geom.det_shape, geom.n_views)[0]:
+        top = max(st.scale for st in stage_list)
+        above = _second_run_fits(stage_list, vol_geom, geom.det_shape, geom.n_views, top, top)
+        return False, (f"the precession recipe was not run as well: at its coarsest scale {above} (second_run); "
                        f"for a stage that wobbles, run recipe = \"precession\"")
     return True, ""
 
@@ -791,10 +797,28 @@ def _correlation_grid(stage_list, vol_geom, scale, like=None):
     return refined_grid(vol_geom.binned(scale) if scale > 1 else vol_geom, k)
 
 
-def _second_run_scales(stage_list, vol_geom, det_shape) -> tuple:
+def _second_run_fits(stage_list, vol_geom, det_shape, n_views, scale, like) -> str:
+    """'' where the precession recipe's rounds at ``scale`` fit the second run's caps, else which cap they are above:
+    the correlation grid's voxels (``SECOND_RUN_MAX_VOXELS``) or, with ``n_views`` given, the views' rays at that
+    scale times the grid's longest edge (``SECOND_RUN_MAX_RAY_STEPS``)."""
+    grid = _correlation_grid(stage_list, vol_geom, scale, like=like).shape
+    if int(np.prod(grid)) > SECOND_RUN_MAX_VOXELS:
+        return f"the correlation grid of scale {scale}, {'x'.join(map(str, grid))}, is above " \
+               f"{_voxels(SECOND_RUN_MAX_VOXELS)} voxels"
+    steps = (0 if n_views is None else
+             float(n_views) * (int(det_shape[0]) // scale) * (int(det_shape[1]) // scale) * max(grid))
+    if steps > SECOND_RUN_MAX_RAY_STEPS:
+        return (f"at scale {scale} the {n_views} views' rays cross the {'x'.join(map(str, grid))} grid in {steps:.2g} "
+                f"voxel steps, above {SECOND_RUN_MAX_RAY_STEPS:.2g}")
+    return ""
+
+
+def _second_run_scales(stage_list, vol_geom, det_shape, n_views=None) -> tuple:
     """(scales, dropped): the default's scales, coarse to fine, whose correlation grid holds at most
-    ``SECOND_RUN_MAX_VOXELS``, and the finer ones left out (the precession recipe's rounds are non-negative
-    least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27). Every grid is
+    ``SECOND_RUN_MAX_VOXELS`` and whose ``n_views`` views' rays (when given) cross it in at most
+    ``SECOND_RUN_MAX_RAY_STEPS`` voxel steps, and the finer ones left out (the precession recipe's rounds are
+    non-negative least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27, §5.57).
+    Every grid is
     oversampled as the default's coarsest stages, as the precession recipe's stages at the scales it is given are
     (not as a finest scale whose oversampling the 256^3 cap lowered: ``capped_oversample``, §5.29).
 
@@ -803,14 +827,13 @@ def _second_run_scales(stage_list, vol_geom, det_shape) -> tuple:
     that while the detector keeps ``SECOND_RUN_MIN_COLUMNS`` columns at it (docs/method.md §5.28); none if no such
     scale."""
     scales = sorted({st.scale for st in stage_list}, reverse=True)
-    fits = [int(np.prod(_correlation_grid(stage_list, vol_geom, s, like=scales[0]).shape)) <= SECOND_RUN_MAX_VOXELS
-            for s in scales]
+    fits = [not _second_run_fits(stage_list, vol_geom, det_shape, n_views, s, scales[0]) for s in scales]
     kept, dropped = tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
     if kept:
         return kept, dropped
     s = 2 * scales[0]
     while int(det_shape[1]) // s >= SECOND_RUN_MIN_COLUMNS:
-        if int(np.prod(_correlation_grid(stage_list, vol_geom, s, like=scales[0]).shape)) <= SECOND_RUN_MAX_VOXELS:
+        if not _second_run_fits(stage_list, vol_geom, det_shape, n_views, s, scales[0]):
             return (s,), dropped
         s *= 2
     return (), dropped
@@ -864,14 +887,13 @@ def _precession_opinion(default_geometry, projections, geom, vol_geom, p, weight
     ``before``: the default's finer scales not yet run, when the comparison comes before them (§5.55)."""
     from ._select import cross_validated_misfit
 
-    scales, dropped = _second_run_scales(stage_list, vol_geom, geom.det_shape)
+    scales, dropped = _second_run_scales(stage_list, vol_geom, geom.det_shape, geom.n_views)
     coarse = ""
     if dropped:
-        grid = _correlation_grid(stage_list, vol_geom, max(dropped), like=max(st.scale for st in stage_list))
+        above = _second_run_fits(stage_list, vol_geom, geom.det_shape, geom.n_views, max(dropped),
+                                 max(st.scale for st in stage_list))
         coarser = ", coarser than the default's" if scales[0] > max(st.scale for st in stage_list) else ""
-        coarse = (f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only{coarser} (the "
-                  f"correlation grid of scale {max(dropped)}, {'x'.join(map(str, grid.shape))}, is above "
-                  f"{_voxels(SECOND_RUN_MAX_VOXELS)} voxels)")
+        coarse = f" at scale{'s' if len(scales) > 1 else ''} {', '.join(map(str, scales))} only{coarser} ({above})"
     if before:
         coarse += f", before the default's scale{'s' if ',' in before else ''} {before}"
     log.info("second run: the default kept the %s model; the precession recipe runs as well%s, and the geometry whose "
@@ -1743,7 +1765,7 @@ def _nominal_predicts_as_well(p, geom, vol_geom, calibrated, stages, weights, ba
     '' where the calibrated geometry predicts better, or where no scale's grid is below that cap."""
     from ._select import cross_validated_misfit
 
-    kept, _ = _second_run_scales(stages, vol_geom, geom.det_shape)
+    kept, _ = _second_run_scales(stages, vol_geom, geom.det_shape, geom.n_views)
     if not kept:
         return ""
     t0 = time.perf_counter()
