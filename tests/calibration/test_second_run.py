@@ -52,12 +52,18 @@ def test_the_second_run_is_made_only_where_the_default_kept_a_model_without_the_
     assert _pipeline._second_run_scales(st, vg, full.det_shape) == ((1,), ())
     # many views on a large detector (bench_large.py's 2k scan of 1440 views binned by 4): grids within the voxel cap,
     # but at scale 4 the rays cross its 64^3 grid in 1440 x 128 x 128 x 64 = 1.5e9 voxel steps, above
-    # SECOND_RUN_MAX_RAY_STEPS (scale 2: 1.2e10): a coarser scale, 8 (1.9e8); 90 views fit at both (docs/method.md §5.57)
+    # SECOND_RUN_MAX_RAY_STEPS (scale 2: 1.2e10): no second run (no coarser scale either, as for the voxel cap: at scale
+    # 8 its geometry came back 67 px off and was kept); 90 views fit at both (docs/method.md §5.57)
     wide = resolve_stages((512, 512), vol_shape=big.shape)
     assert sorted({s.scale for s in wide}) == [2, 4]
     assert _pipeline._second_run_scales(wide, big, (512, 512)) == ((4, 2), ())
     assert _pipeline._second_run_scales(wide, big, (512, 512), 90) == ((4, 2), ())
-    assert _pipeline._second_run_scales(wide, big, (512, 512), 1440) == ((8,), (4, 2))
+    assert _pipeline._second_run_scales(wide, big, (512, 512), 1440) == ((), (4, 2))
+    assert _pipeline._second_run_scales(wide, big, (512, 512), 360) == ((4,), (2,))  # 3.8e8 at 4, 3e9 at 2
+    run, why = _pipeline._second_run_reason("default", _Outcome(AXIS_KEPT), pdvc.circular_cone(
+        np.linspace(0, 2 * np.pi, 1440, endpoint=False), sod=500.0, odd=250.0, det_shape=(512, 512), pixel=1.0), {},
+        wide, big)
+    assert not run and "not run as well: at scale 4 the 1440 views' rays" in why
     assert "1440 views' rays cross the 64x64x64 grid in 1.5e+09 voxel steps" in _pipeline._second_run_fits(
         wide, big, (512, 512), 1440, 4, 4)
     assert _pipeline._second_run_fits(wide, big, (512, 512), 90, 4, 4) == ""

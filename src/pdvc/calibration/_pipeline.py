@@ -696,8 +696,8 @@ SECOND_RUN_MAX_VOXELS = 200**3
 #: ... and whose views' rays at that scale times the grid's longest edge (the voxels one projection of its
 #: non-negative least-squares iterations walks) are at most this many: the cost grows with the views and the detector
 #: as well as the grid. A 2k scan of 1440 views binned by 4 (bench_large.py: 128^3 at scale 2, 1440 views of 256^2)
-#: walks 1.2e10, its precession recipe's rounds 5 minutes each there; the benchmark suites' scans 3e7-6e8
-#: (docs/method.md §5.57)
+#: walks 1.2e10, its precession recipe's rounds 5 minutes each there; the benchmark suites' scans 3e7-6e8. Where the
+#: default's coarsest scale is above it, the second run is not made (docs/method.md §5.57)
 SECOND_RUN_MAX_RAY_STEPS = 1e9
 #: ... where none of the default's scales is below that cap, at a coarser scale than the default's, if the detector has
 #: at least this many columns there (the automatic schedule's coarsest scale keeps 64 or more; docs/method.md §5.28)
@@ -746,7 +746,7 @@ def _second_run_reason(recipe, drv, geom, model, stage_list, vol_geom, roi_scan:
     if not _second_run_scales(stage_list, vol_geom, geom.det_shape, geom.n_views)[0]:
         top = max(st.scale for st in stage_list)
         above = _second_run_fits(stage_list, vol_geom, geom.det_shape, geom.n_views, top, top)
-        return False, (f"the precession recipe was not run as well: at its coarsest scale {above} (second_run); "
+        return False, (f"the precession recipe was not run as well: {above} (second_run); "
                        f"for a stage that wobbles, run recipe = \"precession\"")
     return True, ""
 
@@ -817,8 +817,8 @@ def _second_run_scales(stage_list, vol_geom, det_shape, n_views=None) -> tuple:
     """(scales, dropped): the default's scales, coarse to fine, whose correlation grid holds at most
     ``SECOND_RUN_MAX_VOXELS`` and whose ``n_views`` views' rays (when given) cross it in at most
     ``SECOND_RUN_MAX_RAY_STEPS`` voxel steps, and the finer ones left out (the precession recipe's rounds are
-    non-negative least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27, §5.57).
-    Every grid is
+    non-negative least-squares fits: on a 256^3 grid a round takes a minute on 2 cores; docs/method.md §5.27, §5.57);
+    none where the default's coarsest scale is above the voxel-step cap. Every grid is
     oversampled as the default's coarsest stages, as the precession recipe's stages at the scales it is given are
     (not as a finest scale whose oversampling the 256^3 cap lowered: ``capped_oversample``, §5.29).
 
@@ -829,7 +829,10 @@ def _second_run_scales(stage_list, vol_geom, det_shape, n_views=None) -> tuple:
     scales = sorted({st.scale for st in stage_list}, reverse=True)
     fits = [not _second_run_fits(stage_list, vol_geom, det_shape, n_views, s, scales[0]) for s in scales]
     kept, dropped = tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
-    if kept:
+    if kept or "voxel steps" in _second_run_fits(stage_list, vol_geom, det_shape, n_views, scales[0], scales[0]):
+        # the coarser scale is for grids above the voxel cap (§5.28); where the views' work at the default's coarsest
+        # scale is above its cap, none: on the 2k scan of 1440 views the precession recipe at scale 8 (a 32^3 grid)
+        # came back 67 px (full resolution) from the truth and its comparison there kept it (§5.57)
         return kept, dropped
     s = 2 * scales[0]
     while int(det_shape[1]) // s >= SECOND_RUN_MIN_COLUMNS:
