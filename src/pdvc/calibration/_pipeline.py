@@ -1764,8 +1764,9 @@ def _nominal_predicts_as_well(p, geom, vol_geom, calibrated, stages, weights, ba
     predicts the views it was not made from no better than the nominal one's by more than ``NEAR_NOMINAL_GAIN``
     (:func:`pdvc.calibration.cross_validated_misfit`, as the second run compares two recipes' geometries: two
     interleaved sets of views, non-negative least squares by ordered subsets, the background per view the run fitted
-    taken out), at the finest of the stages' scales whose correlation grid holds at most ``SECOND_RUN_MAX_VOXELS``;
-    '' where the calibrated geometry predicts better, or where no scale's grid is below that cap."""
+    taken out), at the finest of the scales the second run would take (:func:`_second_run_scales`: the grid and the
+    views' voxel steps within its caps); '' where the calibrated geometry predicts better, or where no scale is within
+    them (the check is then not made)."""
     from ._select import cross_validated_misfit
 
     kept, _ = _second_run_scales(stages, vol_geom, geom.det_shape, geom.n_views)
