@@ -805,12 +805,19 @@ def _second_run_fits(stage_list, vol_geom, det_shape, n_views, scale, like) -> s
     if int(np.prod(grid)) > SECOND_RUN_MAX_VOXELS:
         return f"the correlation grid of scale {scale}, {'x'.join(map(str, grid))}, is above " \
                f"{_voxels(SECOND_RUN_MAX_VOXELS)} voxels"
-    steps = (0 if n_views is None else
-             float(n_views) * (int(det_shape[0]) // scale) * (int(det_shape[1]) // scale) * max(grid))
+    steps = _ray_steps(det_shape, n_views, scale, grid)
     if steps > SECOND_RUN_MAX_RAY_STEPS:
         return (f"at scale {scale} the {n_views} views' rays cross the {'x'.join(map(str, grid))} grid in {steps:.2g} "
                 f"voxel steps, above {SECOND_RUN_MAX_RAY_STEPS:.2g}")
     return ""
+
+
+def _ray_steps(det_shape, n_views, scale, grid_shape) -> float:
+    """The voxel steps of one projection of ``n_views`` views at ``scale`` through a grid of ``grid_shape`` (its rays
+    times the grid's longest edge); 0 where ``n_views`` is None (not counted)."""
+    if n_views is None:
+        return 0.0
+    return float(n_views) * (int(det_shape[0]) // scale) * (int(det_shape[1]) // scale) * max(grid_shape)
 
 
 def _second_run_scales(stage_list, vol_geom, det_shape, n_views=None) -> tuple:
@@ -829,7 +836,8 @@ def _second_run_scales(stage_list, vol_geom, det_shape, n_views=None) -> tuple:
     scales = sorted({st.scale for st in stage_list}, reverse=True)
     fits = [not _second_run_fits(stage_list, vol_geom, det_shape, n_views, s, scales[0]) for s in scales]
     kept, dropped = tuple(s for s, ok in zip(scales, fits) if ok), tuple(s for s, ok in zip(scales, fits) if not ok)
-    if kept or "voxel steps" in _second_run_fits(stage_list, vol_geom, det_shape, n_views, scales[0], scales[0]):
+    top = _correlation_grid(stage_list, vol_geom, scales[0], like=scales[0]).shape
+    if kept or _ray_steps(det_shape, n_views, scales[0], top) > SECOND_RUN_MAX_RAY_STEPS:
         # the coarser scale is for grids above the voxel cap (§5.28); where the views' work at the default's coarsest
         # scale is above its cap, none: on the 2k scan of 1440 views the precession recipe at scale 8 (a 32^3 grid)
         # came back 67 px (full resolution) from the truth and its comparison there kept it (§5.57)
