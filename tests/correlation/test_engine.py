@@ -297,3 +297,28 @@ def test_acceleration_reaches_the_plain_solution_in_fewer_passes(setup):
     assert fast.n_iter <= plain.n_iter
     np.testing.assert_allclose(fast.params, plain.params, atol=2e-4)
     assert _err(geom, fast.geometry, vg, p[:, 3:], p[:, :3]) < 2e-3
+
+
+def test_a_correlation_stops_where_the_next_step_would_move_less_than_tol_px_without_a_pass_to_evaluate_it(setup):
+    """Started where a first correlation converged, the next Gauss-Newton step is below ``tol_px``: one pass,
+    ``CONVERGED``, the poses as given; from the nominal poses the run ends within ``tol_px`` of the truth, and a
+    tolerance above the first step takes that step before it stops."""
+    vg, vol, geom, angles = setup
+    t = np.tile([0.35, -0.25, 0.3], (geom.n_views, 1))  # a constant shift, as the constant basis models it
+    zero = np.zeros((geom.n_views, 3))
+    data = _data(vol, vg, geom, zero, t)
+    kw = dict(basis="constant", noise_variance=1e-4, max_iter=10, tol_px=1e-3)
+    first = correlate(vol, vg, data, geom, **kw)
+    assert first.status == Status.CONVERGED and first.n_iter >= 2
+    assert _err(geom, first.geometry, vg, zero, t) < 2e-3
+    again = correlate(vol, vg, data, geom, initial_rotvecs=first.rotvecs, initial_translations=first.translations, **kw)
+    assert again.status == Status.CONVERGED and again.n_iter == 1 and again.chi_history.size == 1
+    assert np.array_equal(again.rotvecs, first.rotvecs) and np.array_equal(again.translations, first.translations)
+    # a tolerance below that step's size takes it, with the pass that evaluates it
+    tight = correlate(vol, vg, data, geom, initial_rotvecs=first.rotvecs, initial_translations=first.translations,
+                      **dict(kw, tol_px=1e-9))
+    assert tight.n_iter >= 2 and not np.array_equal(tight.translations, first.translations)
+    # a tolerance above the first step (a round's forcing term) still takes that step, then stops: 2 passes
+    loose = correlate(vol, vg, data, geom, **dict(kw, tol_px=50.0))
+    assert loose.status == Status.CONVERGED and loose.n_iter == 2 and loose.chi_history.size == 2
+    assert _err(geom, loose.geometry, vg, zero, t) < 0.5 * _err(geom, geom, vg, zero, t)

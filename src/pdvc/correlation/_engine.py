@@ -707,6 +707,7 @@ def _std_sample(prob: _Problem, var_scaled_free: np.ndarray, rv) -> np.ndarray:
     return np.sqrt(var)
 
 
+_FIRST_STEP_TOL_PX = 1e-3  # a first Gauss-Newton step this small is not taken, whatever the caller's tol_px
 _AA_REGIME = 0.05  # accelerate once a Gauss-Newton step lowers chi by less than 5 %
 
 
@@ -764,6 +765,18 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
         delta_f, obs, var = _full_step(prob, basis, red, rv, rcond, mu)
         if x is None:
             x = np.zeros_like(delta_f)
+        if mu == 0.0:
+            plain_px = prob.max_displacement_px(rv, t, *_compose_increment(rv, t, prob.to_sample_params(delta_f, rv),
+                                                                           prob.center))
+            # the first step is taken unless it is below _FIRST_STEP_TOL_PX too: a caller's looser tolerance (the
+            # rounds' forcing term) ends the iteration, it does not make a round report no motion at all
+            stop_px = tol_px if len(chi_hist) > 1 else min(tol_px, _FIRST_STEP_TOL_PX)
+            if plain_px < stop_px:
+                # the Gauss-Newton step this pass predicts moves the sample points by less than the tolerance:
+                # converged where it stands, without a pass to evaluate so small a step
+                log.info("iteration %d: the next step would move %.3g px (below %.3g): converged", it, plain_px, stop_px)
+                status = Status.CONVERGED
+                break
         accelerated = aa is not None and mu == 0.0
         if accelerated:
             # only in the slow, nearly linear regime: far from the solution the secant model is poor
