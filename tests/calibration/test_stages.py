@@ -182,6 +182,44 @@ def test_a_rounds_stage_stops_when_its_rounds_stop_contracting(small):
     assert free.stages[0].status == Status.ROUNDS_DONE and len(free.history) == 3
 
 
+def test_a_rounds_gauss_newton_stops_at_a_tenth_of_the_last_rounds_increment(small, monkeypatch):
+    # inexact rounds on a full turn: the first round's passes run to the engine's 1e-3 px; each later one stops at a
+    # step below INNER_FORCING x the last round's increment (full-resolution px, converted to the stage's scale)
+    from pdvc.calibration import _driver
+
+    p, g, vg = small.scan.projections, small.scan.geometry, small.vol_geom
+    tols, passes = [], []
+    real = _driver.correlate
+
+    def spy(*a, **kw):
+        tols.append(kw["tol_px"])
+        res = real(*a, **kw)
+        passes.append(int(res.n_iter))
+        return res
+
+    monkeypatch.setattr(_driver, "correlate", spy)
+    st = Stage(name="m", basis="constant", frame="lab", fixed=("rz", "ty"), until="rounds", rounds=3, tol_px=1e-9,
+               stall_ratio=None, scale=2)
+    out = run_stages(p, g, vg, [st], noise_variance=1e-4)
+    inc = [h["increment_px"] for h in out.history]
+    assert len(tols) == 3 and tols[0] == _driver.INNER_TOL_PX
+    assert tols[1:] == [max(_driver.INNER_TOL_PX, _driver.INNER_FORCING * i / 2) for i in inc[:2]]
+    assert inc[0] > 1.0 and tols[1] > 0.03  # the 2-voxel offset's first round: its next one stops far sooner
+    loose = passes[1]
+    # a short scan (its first 202.5 deg) runs every round's passes to 1e-3 px: its rounds creep, the stall rule reads them
+    tols.clear()
+    run_stages(p[:28], g[:28], vg, [st], noise_variance=1e-4)
+    assert len(tols) >= 3 and set(tols) == {_driver.INNER_TOL_PX}
+    # ... and without the forcing term every round runs to 1e-3 px, with more passes after the first
+    tols.clear(), passes.clear()
+    monkeypatch.setattr(_driver, "INNER_FORCING", 0.0)
+    exact = run_stages(p, g, vg, [st], noise_variance=1e-4)
+    assert tols == [_driver.INNER_TOL_PX] * 3 and passes[1] > loose
+    # the poses the rounds end at differ by less than half the last rounds' increments (0.006 px here)
+    moves = np.linalg.norm(_driver.point_moves(g, _driver.increment_points(vg), out.poses, exact.poses), axis=-1)
+    assert np.sqrt(np.mean(moves**2)) < 0.5 * min(inc[1:])
+
+
 def test_auto_scales_cap_the_correlation_grid_of_the_finest_scale():
     # the standard problem: scale 1 would correlate on 512^3; an octave coarser it is 256^3 and scale 4 keeps 96 px
     assert auto_scales((256, 384)) == (2, 1)

@@ -59,6 +59,13 @@ NONNEG_MAX_SUBSETS = 3
 # a stage that sets its subsets (Stage.subsets = m: the default's refining round at the finest scale of a short scan):
 # at most m subsets of at least NONNEG_MIN_SUBSET_VIEWS views each (docs/method.md §5.52)
 NONNEG_MIN_SUBSET_VIEWS = 15
+# inexact rounds on full turns: a round's Gauss-Newton passes stop at a step that moves the sample points by less than
+# INNER_FORCING times the last round's increment (a forcing term, as in inexact Newton methods), never below the
+# engine's own INNER_TOL_PX: the next reconstruction moves the target by about that increment anyway. Not on short
+# scans, whose rounds creep (increments 10-20 % shorter a round, which the stall rule reads): there every round's
+# passes run to INNER_TOL_PX (docs/method.md §5.58)
+INNER_FORCING = 0.1
+INNER_TOL_PX = 1e-3
 
 __all__ = ["run_stages", "DriverResult", "StageOutcome", "refined_grid", "reconstruct", "correlation_volume", "data_at_scale",
            "jolt_views", "jolt_steps"]
@@ -443,6 +450,7 @@ class _Context:
         self.backend = backend
         self.center = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float)
         self.points = increment_points(vol_geom)
+        self.full_turn = opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION
         self._scaled: dict = {}
         self.lipschitz: dict = {}  # nonneg_ls step bounds, per grid: estimated once per scan
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
@@ -965,10 +973,18 @@ class _StageRun:
             vol, vg_c, p, g, basis=self.basis, frame=st.frame, fixed=ctx.fixed(st), method=st.method, center=ctx.center,
             weights=w, noise_variance=gamma2, angles=ctx.angles, times=ctx.times,
             initial_rotvecs=self.poses.rotvecs, initial_translations=self.poses.translations,
-            max_iter=st.max_iter, accelerate=st.accelerate, max_modes=st.max_modes, pgd_passes=st.pgd_passes, min_gain=st.min_gain,
-            noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend, max_start_chi=limit,
+            max_iter=st.max_iter, tol_px=self._inner_tol_px(), accelerate=st.accelerate, max_modes=st.max_modes,
+            pgd_passes=st.pgd_passes, min_gain=st.min_gain, noise_floor=st.noise_floor, rcond=st.rcond, backend=ctx.backend,
+            max_start_chi=limit,
             background=stage_background(st, ctx.auto_background), robust=st.robust,
         )
+
+    def _inner_tol_px(self) -> float:
+        """The round's Gauss-Newton tolerance (pixels of its scale): ``INNER_FORCING`` x the last round's increment on a
+        full turn, ``INNER_TOL_PX`` on a short scan and in the first round."""
+        if not self.history or not self.ctx.full_turn:
+            return INNER_TOL_PX
+        return max(INNER_TOL_PX, INNER_FORCING * float(self.history[-1]["increment_px"]) / self.stage.scale)
 
     def _record(self, r, res, chi_before, entropy, inc, inc_max, extrapolated=False, row_sums=None):
         st = self.stage
