@@ -436,7 +436,11 @@ def correlate(
         ``mode_iter``).
     tol_px : float
         Stop when the pose increment moves no sample point by more than this
-        many pixels on the detector.
+        many pixels on the detector: after a step that small, or where the
+        next undamped Gauss-Newton step would be that small (it is then not
+        taken, and no pass is spent on it; the first step only where it is
+        below 1e-3 px as well, so that a loose tolerance never ends a
+        correlation before any step).
     rcond : float
         Eigenvalues below ``rcond`` x the largest (scaled normal matrix) are
         unobservable directions: left out and reported.
