@@ -450,7 +450,7 @@ class _Context:
         self.backend = backend
         self.center = np.asarray(vol_geom.offset, float) if center is None else np.asarray(center, float)
         self.points = increment_points(vol_geom)
-        self.full_turn = opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION
+        self.opposite = opposite_fraction(geom)  # the views with an opposite view: a full turn's 1, a short scan's ~0
         self._scaled: dict = {}
         self.lipschitz: dict = {}  # nonneg_ls step bounds, per grid: estimated once per scan
         self.auto_background: Any = "auto"  # stages with background = "auto": decided at the first round, then kept
@@ -459,6 +459,11 @@ class _Context:
         self.held: tuple = ()  # parameters no smooth model moves (run_stages' held)
         self.known_jolts = np.array([], int)  # views the jolt stage frees whatever it finds (run_stages' known_jolts)
         self.vertical: Optional[np.ndarray] = None  # the vertical motion "tz" is held at (run_stages' vertical)
+
+    @property
+    def full_turn(self) -> bool:
+        """At least ``SHORT_SCAN_OPPOSITE_FRACTION`` of the views have an opposite view."""
+        return self.opposite >= SHORT_SCAN_OPPOSITE_FRACTION
 
     def fixed(self, stage: Stage) -> tuple:
         """The parameters ``stage`` keeps fixed: its own, and the run's ``held`` unless it is the jolt stage."""
@@ -481,9 +486,8 @@ class _Context:
         own = model_name(stage)
         # over half a turn the reconstruction takes up smooth motions and the views left out no longer tell a simpler
         # model from the stage's own (docs/method.md §5.12): simpler candidates are compared on full scans only
-        frac = opposite_fraction(self.geom)
-        short = "" if frac >= SHORT_SCAN_OPPOSITE_FRACTION else \
-            f"a short scan ({100 * frac:.0f} % of the views have an opposite view) cannot tell them apart"
+        short = "" if self.full_turn else \
+            f"a short scan ({100 * self.opposite:.0f} % of the views have an opposite view) cannot tell them apart"
         # plain least squares (no robust weights): what a model predicts better is in the large residuals at the
         # sample's edges, which Huber weights would lower (a foam's combined motion 0.009 -> 0.043 px, tuning split)
         self.model_choice = compare_models(
@@ -919,7 +923,7 @@ class _StageRun:
         """:func:`jolt_views`, the kink of a broad V on scans without opposite views only: there a smooth model takes a
         jolt up as a drift; a full turn's opposite views hold the jump, and its SNR's troughs with the angle (a
         sample's faces, a precession twice a turn) made kinks of their own (``docs/method.md`` §5.33)."""
-        short = opposite_fraction(self.ctx.geom) < SHORT_SCAN_OPPOSITE_FRACTION
+        short = not self.ctx.full_turn
         return jolt_views(snr) if short else jolt_views(snr, kink_window=0)
 
     def _jolt_steps(self) -> np.ndarray:

@@ -755,6 +755,13 @@ class _Anderson:
         return s.reshape(f.shape)
 
 
+def _trial_step(prob, rv, t, delta_f):
+    """(rotvecs, translations, px): the poses after the scaled increment ``delta_f`` and how far it moves the sample
+    points on the detector."""
+    rv2, t2 = _compose_increment(rv, t, prob.to_sample_params(delta_f, rv), prob.center)
+    return rv2, t2, prob.max_displacement_px(rv, t, rv2, t2)
+
+
 def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rcond, callback, accelerate=True):
     """Levenberg–Marquardt on the full identification, Anderson-accelerated; a step is kept only if χ does not rise."""
     mu = 0.0
@@ -769,9 +776,10 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
         delta_f, obs, var = _full_step(prob, basis, red, rv, rcond, mu)
         if x is None:
             x = np.zeros_like(delta_f)
+        trial = None  # (poses, move in px) of the undamped step, reused where the acceleration leaves it as it is
         if mu == 0.0:
-            plain_px = prob.max_displacement_px(rv, t, *_compose_increment(rv, t, prob.to_sample_params(delta_f, rv),
-                                                                           prob.center))
+            trial = _trial_step(prob, rv, t, delta_f)
+            plain_px = trial[2]
             # the first step is taken unless it is below _FIRST_STEP_TOL_PX too: a caller's looser tolerance (the
             # rounds' forcing term) ends the iteration, it does not make a round report no motion at all
             stop_px = tol_px if len(chi_hist) > 1 else min(tol_px, _FIRST_STEP_TOL_PX)
@@ -786,10 +794,10 @@ def _run_full(prob, basis, rv, t, red, chi_hist, snr_hist, max_iter, tol_px, rco
             # only in the slow, nearly linear regime: far from the solution the secant model is poor
             if len(chi_hist) < 2 or chi_hist[-1] < (1.0 - _AA_REGIME) * chi_hist[-2]:
                 aa.reset()
-            delta_f = aa.step(x, delta_f)
-        delta = prob.to_sample_params(delta_f, rv)
-        rv2, t2 = _compose_increment(rv, t, delta, prob.center)
-        step_px = prob.max_displacement_px(rv, t, rv2, t2)
+            stepped = aa.step(x, delta_f)
+            if stepped is not delta_f:
+                delta_f, trial = stepped, None
+        rv2, t2, step_px = trial if trial is not None else _trial_step(prob, rv, t, delta_f)
         red2 = prob.reduce(rv2, t2)
         chi2 = prob.chi(red2)
         if chi2 <= chi_hist[-1] * (1 + 1e-9):
