@@ -14,7 +14,9 @@
   each view matches its mirrored opposite; in parallel beam
   :func:`estimate_axis_roll` finds the projected axis as a leaning line by
   reflecting each view about it (:func:`compare_axes` ranks two such
-  lines); :func:`estimate_detector_pattern` fits a pattern fixed on the
+  lines); :func:`estimate_axis_lean` finds it as the line through the
+  offsets of the detector's top and bottom halves of rows (180° scans
+  too); :func:`estimate_detector_pattern` fits a pattern fixed on the
   detector that opposite views see mirrored (a flat field tilted across the
   columns) with the axis offset; :func:`estimate_axis_tilt` measures the
   axis's tilt, along the beam too, from the row sums of the views (no
@@ -39,8 +41,9 @@ from ..correlation import drift_basis
 from ._axis import MotionSummary, describe_motion
 from ._driver import (DriverResult, StageOutcome, correlation_volume, jolt_steps, jolt_views, reconstruct, refined_grid,
                       run_stages)
-from ._init import (AxisOffsetEstimate, AxisRollEstimate, DetectorPatternEstimate, InitError, MirrorComparison, compare_axes,
-                    compare_offsets, estimate_axis_offset, estimate_axis_roll, estimate_detector_pattern, offset_poses)
+from ._init import (AxisLeanEstimate, AxisOffsetEstimate, AxisRollEstimate, DetectorPatternEstimate, InitError,
+                    MirrorComparison, compare_axes, compare_offsets, estimate_axis_lean, estimate_axis_offset,
+                    estimate_axis_roll, estimate_detector_pattern, offset_poses)
 from ._rowsums import AxisTiltEstimate, RowSumConsistency, VerticalMotion, estimate_axis_tilt, tilt_poses
 from ._outer import OuterError, OuterResult, gauge_text, self_calibrate
 from ._diagnose import ResidualDiagnosis, diagnose_residual, sample_outline
@@ -119,6 +122,8 @@ __all__ = [
     "MirrorComparison",
     "estimate_axis_roll",
     "AxisRollEstimate",
+    "estimate_axis_lean",
+    "AxisLeanEstimate",
     "compare_axes",
     "estimate_detector_pattern",
     "DetectorPatternEstimate",
