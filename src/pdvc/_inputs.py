@@ -355,15 +355,23 @@ def _zinger_line(p, vol_geom, geom, volume) -> str:
 
 
 def _axis_line(p, g) -> str:
-    """The coarse axis without a reconstruction: the opposite views' offset and, in parallel beam, the row sums' tilt."""
-    from .calibration import InitError, estimate_axis_offset, estimate_axis_tilt
-    from .calibration._init import pairs_phrase
+    """The coarse axis without a reconstruction: the opposite views' offset, on a short scan their lean (the offsets of
+    the detector's halves of rows), and in parallel beam the row sums' tilt."""
+    from .calibration import InitError, estimate_axis_lean, estimate_axis_offset, estimate_axis_tilt
+    from .calibration._init import SHORT_SCAN_OPPOSITE_FRACTION, opposite_fraction, pairs_phrase
 
     try:
         est = estimate_axis_offset(p, g)
         offset, text = est.offset_px, f"offset {est.offset_px:+.2f} px from {pairs_phrase(g, est.n_pairs)}"
     except InitError as exc:
         offset, text = 0.0, f"offset not measured ({exc})"
+    if opposite_fraction(g) < SHORT_SCAN_OPPOSITE_FRACTION:  # a short scan: its rounds do not settle the lean
+        try:
+            lean = estimate_axis_lean(p, g)
+            text += (f"; lean in the detector plane {lean.roll_deg:+.3f} ± {np.degrees(lean.roll_sd):.3f}° from the "
+                     f"offsets of the detector's top and bottom halves of rows")
+        except InitError as exc:
+            text += f"; lean not measured ({exc})"
     if g.kind == "parallel":
         try:
             text += f"; tilt from the row sums: {estimate_axis_tilt(p, g, offset_px=offset).describe()}"

@@ -538,6 +538,9 @@ def calibrate(
     # the row sums of a parallel scan whose axis offset is known: the stages start from their tilt where the coarse
     # initialisation started the run (not a resumed one), and they guard the rounds of a half turn (a resumed run too)
     tilt, tilt_text, row_sums = _tilt_init(p, geom, offset_px, timings) if offset_px is not None else (None, "", None)
+    # where they give no tilt, a short parallel scan's stages may start from the lean its views near opposite measure
+    lean, lean_text = (_lean_init(p, geom, timings) if tilt is None and offset_px is not None and not resume
+                       else (None, ""))
     if resume:
         tilt, tilt_text = None, ""  # the poses are the checkpoint's
     p, found_rings = _rings(p, noise_variance, timings) if rings == "on" else (p, None)
@@ -566,6 +569,8 @@ def calibrate(
     if row_sums is not None and not resume:
         poses, held, known_jolts, vertical_text = _with_vertical(poses, row_sums, geom, vol_geom, lateral)
         vm = row_sums.vertical_motion() if held else None
+    if lean is not None:
+        poses, lean_text = _with_lean(poses, lean, lean_text, geom, lateral, held)
     row_sums, guard_text = _row_sums_guard(row_sums, geom, lateral)
     if roi == "on" or (roi == "auto" and trunc is not None and trunc.lateral and _covers_field(geom, vol_geom)):
         p_out, p, vol_initial = p, *_roi(p, geom, vol_geom, poses, timings)
@@ -633,6 +638,8 @@ def calibrate(
         options["detector_pattern"] = pattern_text
     if tilt_text:
         options["axis_tilt"] = tilt_text
+    if lean_text:
+        options["axis_lean"] = lean_text
     if guard_text:
         options["row_sums_guard"] = guard_text
     if vertical_text:
@@ -1104,6 +1111,64 @@ def _with_tilt(poses, tilt, what: str, geom, offset_px: float, lateral: bool):
     log.info("coarse initialisation: the stages start from the row sums' tilted axis")
     return (tilt_poses(geom, roll=tilt.roll, pitch=tilt.pitch, offset_px=offset_px),
             f"{what}: the stages started from this tilted axis")
+
+
+#: a parallel scan without a full turn (fewer than SHORT_SCAN_OPPOSITE_FRACTION of its views with an opposite view)
+#: whose row sums give no tilt and measure no vertical motion: its stages start from the axis's lean in the detector
+#: plane that its views near opposite measure (estimate_axis_lean), where it is at least LEAN_INIT_MIN_DEG and at most
+#: LEAN_INIT_MAX_DEG. Over half a turn the lean is weakly determined for the rounds, which start from the upright axis
+#: and creep part of the way (a low-dose rod leaning 0.95 deg: 0.45 deg after five rounds, 0.094 px). Below 0.2 deg
+#: the upright start is as good: on the tuning scans that do not lean, the views near opposite read 0.07-0.16 deg of
+#: lean from a precession, a drift or jolts between the scan's first and last views (docs/method.md §5.59)
+LEAN_INIT = True
+LEAN_INIT_MIN_DEG = 0.2
+LEAN_INIT_MAX_DEG = 3.0
+
+
+def _lean_init(p, geom, timings: Optional[dict] = None):
+    """(The axis's lean that a short parallel scan's views near opposite measure, or None where it is not measured or
+    beyond ``LEAN_INIT_MAX_DEG``; what the report says, "" where it was not measured): the stages' start when the row
+    sums give none (:data:`LEAN_INIT`; :func:`_with_lean` decides)."""
+    from ._init import estimate_axis_lean
+
+    if not LEAN_INIT or geom.kind != "parallel" or opposite_fraction(geom) >= SHORT_SCAN_OPPOSITE_FRACTION:
+        # a full turn settles the lean in its rounds; in cone beam a view's opposite is its mirror image near the
+        # mid-plane only, and the halves' lean started fresh cone-beam short scans worse (docs/method.md §5.59)
+        return None, ""
+    t0 = time.perf_counter()
+    try:
+        est = estimate_axis_lean(p, geom)
+    except InitError as exc:
+        log.info("axis lean from the views near opposite skipped: %s", exc)
+        return None, f"not measured: {exc}"
+    finally:
+        if timings is not None:
+            timings["init"] = timings.get("init", 0.0) + time.perf_counter() - t0
+    what = (f"{est.roll_deg:+.3f} ± {np.degrees(est.roll_sd):.3f}° at {est.offset_px:+.3f} px (the offsets of the "
+            f"detector's top and bottom halves of rows, {est.top.n_pairs} pairs of views near opposite)")
+    if abs(est.roll_deg) > LEAN_INIT_MAX_DEG:
+        text = f"{what}: not used (at most {LEAN_INIT_MAX_DEG:g}°); the stages started from the upright axis"
+        log.info("axis lean %s", text)
+        return None, text
+    return est, what
+
+
+def _with_lean(poses, lean, what: str, geom, lateral: bool, held: tuple = ()):
+    """(The poses to start from, what the report says): the axis leaning as the views near opposite say, unless the
+    sample reaches the sides (a region-of-interest scan starts from its own comparison of opposite views) or the row
+    sums measured a vertical motion (``held``: the scan's first and last views, which the lean compares, lie at
+    different heights, and the halves' offsets mix that with the lean: 2.0° read on a granular scan that drifted by
+    2 px up and leaned none, docs/method.md §5.59)."""
+    why = ("the sample reaches the sides of the volume (a region-of-interest scan)" if lateral
+           else "the row sums measured a vertical motion, which the halves of the views near opposite read as a lean"
+           if "tz" in held else f"below {LEAN_INIT_MIN_DEG:g}° (the upright axis is as good a start)"
+           if abs(lean.roll_deg) < LEAN_INIT_MIN_DEG else "" if poses is not None else "no coarse start")
+    if why:
+        text = f"{what}: not used, {why}; the stages started from the upright axis"
+        log.info("axis lean %s", text)
+        return poses, text
+    log.info("coarse initialisation: the stages start from the axis's lean, %s", what)
+    return _axis_poses(geom, lean.offset_px, lean.roll), f"{what}: the stages started from this leaning axis"
 
 
 # the vertical motion that the row sums' registration measured (RowSumConsistency.vertical_motion) is where the stages

@@ -100,6 +100,8 @@ def build_report(out, result, *, projections, angles, params_lab, inputs=()):
         summary["coarse axis offset (px)"] = result.initial_offset_px
     if "axis_tilt" in (getattr(result, "options", None) or {}):
         summary["coarse axis tilt (row sums of the views)"] = result.options["axis_tilt"]
+    if "axis_lean" in (getattr(result, "options", None) or {}):
+        summary["coarse axis lean (views near opposite)"] = result.options["axis_lean"]
     if "vertical_motion" in (getattr(result, "options", None) or {}):
         summary["vertical motion (row sums' registration)"] = result.options["vertical_motion"]
     if "row_sums_guard" in (getattr(result, "options", None) or {}):
