@@ -888,11 +888,8 @@ class AxisLeanEstimate:
 
     Attributes
     ----------
-    offset_px : float, pixels
-        Column of the line at the detector's centre row minus the centre column (as
-        :attr:`AxisOffsetEstimate.offset_px`).
-    slope : float
-        Columns per row along the line (positive: the axis leans toward larger columns at larger rows).
+    offset_px, slope : float
+        The line at the detector's centre row and its columns per row, as in :class:`AxisRollEstimate`.
     roll : float, radians
         The axis's tilt about the beam, ``± arctan(slope · |u| / |v|)``: the ``roll`` of
         :func:`pdvc.calibration.tilt_poses` (its sign that of the detector's handedness about the ray
