@@ -130,9 +130,15 @@ def _magnification(geom: VectorGeometry) -> np.ndarray:
     return sdd / sod
 
 
+def _from_opposite(d: np.ndarray) -> np.ndarray:
+    """Angle differences ``θ_j − θ_i`` as ``θ_j − θ_i − π`` wrapped to [−π, π): how far view ``j`` is from opposite
+    view ``i``."""
+    return np.asarray(d) % (2 * np.pi) - np.pi
+
+
 def _mismatch(theta: np.ndarray, i: int) -> np.ndarray:
     """``θ_j − θ_i − π`` for every view ``j``, wrapped to [−π, π): how far each view is from opposite view ``i``."""
-    return (theta - theta[i]) % (2 * np.pi) - np.pi
+    return _from_opposite(theta - theta[i])
 
 
 #: a scan where fewer views than this have an opposite view is a short scan (docs/method.md §6)
@@ -923,7 +929,7 @@ def _offset_se(est: AxisOffsetEstimate, theta: np.ndarray) -> float:
     if est.mismatch_slope == 0.0:
         return float(np.std(off[good], ddof=1) / np.sqrt(n)) if n > 1 else np.inf
     i, j = np.asarray(est.pairs).T
-    d = np.angle(np.exp(1j * (theta[j] - theta[i] - np.pi)))[good]
+    d = _from_opposite(theta[j] - theta[i])[good]
     if n < 3:
         return np.inf
     A = np.stack([np.ones(n), d], axis=1)

@@ -1159,10 +1159,14 @@ def _with_lean(poses, lean, what: str, geom, lateral: bool, held: tuple = ()):
     sums measured a vertical motion (``held``: the scan's first and last views, which the lean compares, lie at
     different heights, and the halves' offsets mix that with the lean: 2.0° read on a granular scan that drifted by
     2 px up and leaned none, docs/method.md §5.59)."""
-    why = ("the sample reaches the sides of the volume (a region-of-interest scan)" if lateral
-           else "the row sums measured a vertical motion, which the halves of the views near opposite read as a lean"
-           if "tz" in held else f"below {LEAN_INIT_MIN_DEG:g}° (the upright axis is as good a start)"
-           if abs(lean.roll_deg) < LEAN_INIT_MIN_DEG else "" if poses is not None else "no coarse start")
+    if lateral:
+        why = "the sample reaches the sides of the volume (a region-of-interest scan)"
+    elif "tz" in held:
+        why = "the row sums measured a vertical motion, which the halves of the views near opposite read as a lean"
+    elif abs(lean.roll_deg) < LEAN_INIT_MIN_DEG:
+        why = f"below {LEAN_INIT_MIN_DEG:g}° (the upright axis is as good a start)"
+    else:
+        why = ""
     if why:
         text = f"{what}: not used, {why}; the stages started from the upright axis"
         log.info("axis lean %s", text)
